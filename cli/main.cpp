@@ -1,0 +1,186 @@
+// The iteas command line (SPEC §6): refine, convert, inspect (and serve, once
+// the server exists). Exit codes: 0 ok, 2 bad usage, 3 bad input, 4 I/O.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <iterator>
+#include <string>
+#include <vector>
+
+#include "io/pipeline.h"
+
+namespace {
+
+constexpr int kExitOk = 0, kExitUsage = 2, kExitBadInput = 3, kExitIo = 4;
+
+const char* kUsage =
+    "usage:\n"
+    "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--quiet]\n"
+    "  iteas convert IN OUT [output options]\n"
+    "  iteas inspect IN\n"
+    "options (SPEC §3): --mode iteas|uniform|fixed  --levels 1-8  --threshold mean|median|pNN|DEG\n"
+    "  --threshold-scope input|level  --select above|below  --crease-angle DEG|off\n"
+    "  --max-triangles N  --tension W  --output glb|gltf|drc|obj|ply  --compression draco|none\n"
+    "  --position-bits N --normal-bits N --texcoord-bits N --color-bits N --generic-bits N --draco-level 0-10\n"
+    "formats in: glb gltf (data: URIs only) drc obj ply off stl; out: glb gltf drc obj ply\n";
+
+int usage(const std::string& msg) {
+  std::fprintf(stderr, "iteas: %s\n%s", msg.c_str(), kUsage);
+  return kExitUsage;
+}
+
+bool read_file(const std::string& path, std::vector<uint8_t>* out) {
+  std::ifstream f(path, std::ios::binary);
+  if (!f) return false;
+  out->assign(std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>());
+  return !f.bad();
+}
+
+bool write_file(const std::string& path, const void* data, size_t size) {
+  if (path == "-") return std::fwrite(data, 1, size, stdout) == size;
+  std::ofstream f(path, std::ios::binary);
+  if (!f) return false;
+  f.write(static_cast<const char*>(data), std::streamsize(size));
+  return bool(f);
+}
+
+std::string extension_of(const std::string& path) {
+  const size_t dot = path.find_last_of('.');
+  const size_t slash = path.find_last_of('/');
+  if (dot == std::string::npos || (slash != std::string::npos && dot < slash)) return "";
+  std::string e = path.substr(dot + 1);
+  for (char& c : e) c = char(std::tolower(static_cast<unsigned char>(c)));
+  return e;
+}
+
+int exit_for(const iteas::Status& s) { return s.kind == iteas::ErrorKind::kIo ? kExitIo : kExitBadInput; }
+
+double now_ms() {
+  using namespace std::chrono;
+  return duration<double, std::milli>(steady_clock::now().time_since_epoch()).count();
+}
+
+// refine and convert share everything but the refinement itself.
+int run(const std::vector<std::string>& args, bool refine) {
+  std::string in, out, stats_path;
+  bool quiet = false;
+  std::vector<std::pair<std::string, std::string>> pairs;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    auto value = [&](std::string* v) {
+      if (i + 1 >= args.size()) return false;
+      *v = args[++i];
+      return true;
+    };
+    if (a == "-o" || a == "--out") {
+      if (!value(&out)) return usage("-o needs a file");
+    } else if (a == "--stats") {
+      if (!value(&stats_path)) return usage("--stats needs a file or -");
+    } else if (a == "--quiet" || a == "-q") {
+      quiet = true;
+    } else if (a.rfind("--", 0) == 0 && a.size() > 2) {
+      std::string name = a.substr(2), v;
+      const size_t eq = name.find('=');
+      if (eq != std::string::npos) { v = name.substr(eq + 1); name = name.substr(0, eq); }
+      else if (!value(&v)) return usage("option --" + name + " needs a value");
+      pairs.emplace_back(name, v);
+    } else if (in.empty()) {
+      in = a;
+    } else if (!refine && out.empty()) {
+      out = a;
+    } else {
+      return usage("unexpected argument '" + a + "'");
+    }
+  }
+  if (in.empty() || out.empty()) return usage(refine ? "refine needs IN and -o OUT" : "convert needs IN and OUT");
+  iteas::Options options;
+  std::string error;
+  if (!iteas::parse_options(pairs, &options, &error)) return usage(error);
+  std::string out_format = options.out.output.empty() ? extension_of(out) : options.out.output;
+  if (out_format != "glb" && out_format != "gltf" && out_format != "drc" && out_format != "obj" && out_format != "ply")
+    return usage("cannot tell the output format from '" + out + "': use .glb .gltf .drc .obj .ply or --output");
+
+  std::vector<uint8_t> bytes;
+  if (!read_file(in, &bytes)) {
+    std::fprintf(stderr, "iteas: cannot read %s\n", in.c_str());
+    return kExitIo;
+  }
+  iteas::JobRequest rq;
+  rq.data = bytes.data();
+  rq.size = bytes.size();
+  rq.name_hint = in;
+  rq.output_format = out_format;
+  rq.options = options;
+  rq.refine = refine;
+  iteas::JobHooks hooks;
+  hooks.now_ms = now_ms;
+  const bool tty = !quiet && isatty(STDERR_FILENO);
+  if (tty)
+    hooks.progress = [](int level, const char* phase, double fraction) {
+      if (level > 0) std::fprintf(stderr, "\r[iteas] level %d %-8s %3.0f%%", level, phase, fraction * 100.0);
+      else std::fprintf(stderr, "\r[iteas] %-16s      ", phase);
+      std::fflush(stderr);
+    };
+  iteas::JobResult result;
+  const iteas::Status s = iteas::run_job(rq, hooks, &result);
+  if (tty) std::fprintf(stderr, "\r%60s\r", "");
+  if (!s.ok()) {
+    std::fprintf(stderr, "iteas: %s: %s (%s)\n", in.c_str(), s.message.c_str(), s.code.c_str());
+    return exit_for(s);
+  }
+  if (!write_file(out, result.bytes.data(), result.bytes.size())) {
+    std::fprintf(stderr, "iteas: cannot write %s\n", out.c_str());
+    return kExitIo;
+  }
+  if (!stats_path.empty()) {
+    const std::string text = result.stats.dump(2) + "\n";
+    if (!write_file(stats_path == "-" ? "/dev/stdout" : stats_path, text.data(), text.size())) {
+      std::fprintf(stderr, "iteas: cannot write %s\n", stats_path.c_str());
+      return kExitIo;
+    }
+  }
+  for (const auto& w : result.stats["warnings"])
+    if (!quiet) std::fprintf(stderr, "iteas: warning: %s\n", w.get<std::string>().c_str());
+  return kExitOk;
+}
+
+int inspect(const std::vector<std::string>& args) {
+  if (args.size() != 1) return usage("inspect takes one file");
+  std::vector<uint8_t> bytes;
+  if (!read_file(args[0], &bytes)) {
+    std::fprintf(stderr, "iteas: cannot read %s\n", args[0].c_str());
+    return kExitIo;
+  }
+  nlohmann::json j;
+  const iteas::Status s = iteas::inspect(bytes.data(), bytes.size(), args[0], iteas::ReadLimits(), &j);
+  if (!s.ok()) {
+    std::fprintf(stderr, "iteas: %s: %s (%s)\n", args[0].c_str(), s.message.c_str(), s.code.c_str());
+    return exit_for(s);
+  }
+  std::cout << j.dump(2) << "\n";
+  return kExitOk;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 2) return usage("missing command");
+  const std::string cmd = argv[1];
+  const std::vector<std::string> args(argv + 2, argv + argc);
+  try {
+    if (cmd == "refine") return run(args, true);
+    if (cmd == "convert") return run(args, false);
+    if (cmd == "inspect") return inspect(args);
+    if (cmd == "--help" || cmd == "-h" || cmd == "help") {
+      std::fputs(kUsage, stdout);
+      return kExitOk;
+    }
+  } catch (const std::bad_alloc&) {
+    std::fprintf(stderr, "iteas: out of memory\n");
+    return kExitBadInput;
+  }
+  return usage("unknown command '" + cmd + "'");
+}

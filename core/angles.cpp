@@ -1,0 +1,154 @@
+#include "core/angles.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include "core/parallel.h"
+
+namespace iteas {
+
+bool face_normal(const Mesh& mesh, int32_t f, double n[3]) {
+  const float* p = mesh.positions.data();
+  const int32_t* cv = &mesh.corner_vertex[3 * size_t(f)];
+  const float* a = p + 3 * size_t(cv[0]);
+  const float* q = p + 3 * size_t(cv[1]);
+  const float* r = p + 3 * size_t(cv[2]);
+  const double u[3] = {double(q[0]) - a[0], double(q[1]) - a[1], double(q[2]) - a[2]};
+  const double w[3] = {double(r[0]) - a[0], double(r[1]) - a[1], double(r[2]) - a[2]};
+  n[0] = u[1] * w[2] - u[2] * w[1];
+  n[1] = u[2] * w[0] - u[0] * w[2];
+  n[2] = u[0] * w[1] - u[1] * w[0];
+  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  // Relative tolerance: a cross product ~1e-12 of the squared edge lengths is zero area.
+  const double scale = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+  if (!(len > 1e-12 * scale) || !std::isfinite(len)) return false;
+  for (int k = 0; k < 3; ++k) n[k] /= len;
+  return true;
+}
+
+float normal_angle(const Mesh& mesh, int32_t f, int32_t g) {
+  double n1[3], n2[3];
+  if (!face_normal(mesh, f, n1) || !face_normal(mesh, g, n2)) return std::numeric_limits<float>::quiet_NaN();
+  // atan2(|n1 x n2|, n1 . n2) is accurate for small and large angles alike.
+  const double cx = n1[1] * n2[2] - n1[2] * n2[1], cy = n1[2] * n2[0] - n1[0] * n2[2],
+               cz = n1[0] * n2[1] - n1[1] * n2[0];
+  const double dot = n1[0] * n2[0] + n1[1] * n2[1] + n1[2] * n2[2];
+  return float(std::atan2(std::sqrt(cx * cx + cy * cy + cz * cz), dot) * (180.0 / M_PI));
+}
+
+void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads) {
+  const int32_t nc = ct.num_corners();
+  theta.assign(nc, std::numeric_limits<float>::quiet_NaN());
+  parallel_for(nc, threads, [&](int64_t b, int64_t e) {
+    for (int64_t ci = b; ci < e; ++ci) {
+      const int32_t c = int32_t(ci), d = ct.opposite(c);
+      if (d < 0) continue;
+      // Same arguments in the same order on both corners: bit-identical values.
+      theta[c] = c < d ? normal_angle(mesh, c / 3, d / 3) : normal_angle(mesh, d / 3, c / 3);
+    }
+  });
+}
+
+AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std::vector<float>* theta,
+                              double threshold, double exclude, int threads) {
+  const int32_t nc = ct.num_corners();
+  constexpr int64_t kChunk = 1 << 15;
+  const int64_t chunks = (nc + kChunk - 1) / kChunk;
+  std::vector<AngleSummary> part(chunks);
+  std::vector<double> sums(chunks, 0.0);
+  parallel_for(chunks, threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) {
+      AngleSummary& s = part[k];
+      const int32_t c_end = int32_t(std::min<int64_t>(nc, (k + 1) * kChunk));
+      for (int32_t c = int32_t(k * kChunk); c < c_end; ++c) {
+        const int32_t d = ct.opposite(c);
+        if (d < c) continue;  // boundary (-1) or counted at the smaller corner
+        const float t = theta ? (*theta)[c] : normal_angle(mesh, c / 3, d / 3);
+        if (std::isnan(t) || (exclude > 0 && t >= exclude)) continue;
+        ++s.edges;
+        sums[k] += t;
+        s.max = std::max(s.max, double(t));
+        if (t > threshold) ++s.above;
+        s.histogram[std::min(17, std::max(0, int(t / 10.0f)))]++;
+      }
+    }
+  });
+  AngleSummary s;
+  double sum = 0;
+  for (int64_t k = 0; k < chunks; ++k) {
+    s.edges += part[k].edges;
+    sum += sums[k];
+    s.max = std::max(s.max, part[k].max);
+    s.above += part[k].above;
+    for (int i = 0; i < 18; ++i) s.histogram[i] += part[k].histogram[i];
+  }
+  s.mean = s.edges ? sum / double(s.edges) : 0;
+  return s;
+}
+
+std::string ThresholdSpec::text() const {
+  std::ostringstream o;
+  switch (kind) {
+    case Kind::kMean: return "mean";
+    case Kind::kMedian: return "median";
+    case Kind::kPercentile: o << 'p' << value; return o.str();
+    case Kind::kDegrees: o << value; return o.str();
+  }
+  return "mean";
+}
+
+double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const CornerTable& ct,
+                         const std::vector<float>& theta, double exclude, int threads) {
+  if (spec.kind == ThresholdSpec::Kind::kDegrees) return spec.value;
+  if (spec.kind == ThresholdSpec::Kind::kMean)
+    return summarize_angles(mesh, ct, &theta, 0, exclude, threads).mean;
+  std::vector<float> values;
+  const int32_t nc = ct.num_corners();
+  for (int32_t c = 0; c < nc; ++c) {
+    if (ct.opposite(c) < c) continue;
+    const float t = theta[c];
+    if (std::isnan(t) || (exclude > 0 && t >= exclude)) continue;
+    values.push_back(t);
+  }
+  if (values.empty()) return 0;
+  const double q = spec.kind == ThresholdSpec::Kind::kMedian ? 50.0 : spec.value;
+  // Nearest-rank percentile: deterministic and an actual edge angle.
+  size_t rank = size_t(std::ceil(q / 100.0 * double(values.size())));
+  rank = std::min(values.size(), std::max<size_t>(1, rank)) - 1;
+  std::nth_element(values.begin(), values.begin() + rank, values.end());
+  return values[rank];
+}
+
+QualitySummary triangle_quality(const Mesh& mesh) {
+  const int32_t nf = mesh.num_faces();
+  std::vector<float> mins;
+  mins.reserve(nf);
+  const float* p = mesh.positions.data();
+  for (int32_t f = 0; f < nf; ++f) {
+    double best = 180;
+    bool ok = true;
+    for (int k = 0; k < 3; ++k) {
+      const float* a = p + 3 * size_t(mesh.corner_vertex[3 * f + k]);
+      const float* b = p + 3 * size_t(mesh.corner_vertex[3 * f + (k + 1) % 3]);
+      const float* c = p + 3 * size_t(mesh.corner_vertex[3 * f + (k + 2) % 3]);
+      double u[3], w[3];
+      for (int i = 0; i < 3; ++i) { u[i] = double(b[i]) - a[i]; w[i] = double(c[i]) - a[i]; }
+      const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
+      const double cr = std::sqrt(cx * cx + cy * cy + cz * cz), dt = u[0] * w[0] + u[1] * w[1] + u[2] * w[2];
+      if (cr == 0 && dt == 0) { ok = false; break; }
+      best = std::min(best, std::atan2(cr, dt) * (180.0 / M_PI));
+    }
+    if (ok) mins.push_back(float(best));
+  }
+  QualitySummary q;
+  if (mins.empty()) return q;
+  const size_t rank = std::min(mins.size() - 1, size_t(std::ceil(0.01 * double(mins.size()))) ? size_t(std::ceil(0.01 * double(mins.size()))) - 1 : 0);
+  std::nth_element(mins.begin(), mins.begin() + rank, mins.end());
+  q.p1_angle = mins[rank];
+  q.min_angle = *std::min_element(mins.begin(), mins.end());
+  return q;
+}
+
+}  // namespace iteas

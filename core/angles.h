@@ -1,0 +1,55 @@
+// Dihedral angles between neighbouring face normals (SPEC §2.1) and the
+// statistical threshold derived from them (§2.2). Normals are computed on the
+// fly in double precision rather than stored: memory per triangle matters more
+// than the few extra cross products.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/corner_table.h"
+#include "core/mesh.h"
+
+namespace iteas {
+
+// Unit normal of face f in double; returns false for a zero-area face.
+bool face_normal(const Mesh& mesh, int32_t f, double n[3]);
+
+// Angle in degrees between the normals of faces f and g; NaN if either has
+// zero area.
+float normal_angle(const Mesh& mesh, int32_t f, int32_t g);
+
+// theta[c] for every corner whose edge is interior (NaN at boundaries, cuts
+// and zero-area faces). Both corners of an edge get the same value.
+void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads = 1);
+
+struct AngleSummary {
+  int64_t edges = 0;  // interior edges with a theta
+  double mean = 0, max = 0;
+  int64_t above = 0;  // edges with theta > the threshold given
+  std::vector<int64_t> histogram = std::vector<int64_t>(18, 0);  // 10-degree bins
+};
+
+// Summary over each interior edge once. Edges with theta >= |exclude_at_or_above|
+// (creases) are left out when it is > 0. |theta| may be null: computed on the fly.
+// Deterministic for any thread count (fixed chunks, combined in order).
+AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std::vector<float>* theta,
+                              double threshold, double exclude_at_or_above = 0, int threads = 1);
+
+// The threshold statistic: "mean", "median", "pNN" or a number of degrees.
+struct ThresholdSpec {
+  enum class Kind { kMean, kMedian, kPercentile, kDegrees } kind = Kind::kMean;
+  double value = 0;  // percentile (0-100) or degrees
+  std::string text() const;
+};
+double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const CornerTable& ct,
+                         const std::vector<float>& theta, double exclude_at_or_above = 0, int threads = 1);
+
+// Smallest interior angle (degrees) per face; the minimum and 1st percentile.
+struct QualitySummary {
+  double min_angle = 0, p1_angle = 0;
+};
+QualitySummary triangle_quality(const Mesh& mesh);
+
+}  // namespace iteas

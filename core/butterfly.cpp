@@ -1,0 +1,174 @@
+#include "core/butterfly.h"
+
+#include <cmath>
+
+#include "core/parallel.h"
+
+namespace iteas {
+
+void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+                      std::vector<uint8_t>& sharp) {
+  const int32_t nc = ct.num_corners();
+  sharp.assign(nc, 0);
+  for (int32_t c = 0; c < nc; ++c) {
+    if (ct.opposite(c) < 0) sharp[c] = 1;
+    else if (crease_angle > 0 && theta && (*theta)[c] >= crease_angle) sharp[c] = 1;
+  }
+}
+
+void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
+                       VertexClass& out, int threads) {
+  const int32_t nv = mesh.num_vertices();
+  out.valence.assign(nv, 0);
+  out.complete.assign(nv, 0);
+  parallel_for(nv, threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t first = ct.vertex_corner(int32_t(v));
+      if (first < 0) continue;
+      int32_t faces = 0, c = first;
+      bool closed = false, has_sharp = false;
+      while (true) {
+        ++faces;
+        if (sharp[prev_corner(c)]) has_sharp = true;  // outgoing edge v -> next
+        const int32_t s = ct.swing_right(c);
+        if (s < 0) break;
+        if (s == first) { closed = true; break; }
+        if (faces > ct.num_corners()) break;  // defensive: malformed fan
+        c = s;
+      }
+      out.valence[v] = closed ? faces : faces + 1;
+      out.complete[v] = closed && !has_sharp;
+    }
+  });
+}
+
+namespace {
+
+inline void add(std::vector<StencilTerm>& out, int32_t v, double w) { out.push_back({v, w}); }
+
+// Extraordinary rule at vertex v (corner x0 at v, whose next vertex is the
+// other endpoint of the edge): 3/4 v + sum_j s_j e_j over the ring in order.
+void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, double scale,
+                   std::vector<StencilTerm>& out) {
+  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+  const int K = valence;
+  add(out, cv[x0], 0.75 * scale);
+  int32_t x = x0;
+  for (int j = 0; j < K; ++j) {
+    double s;
+    if (K == 3) s = j == 0 ? 5.0 / 12.0 : -1.0 / 12.0;
+    else if (K == 4) s = j == 0 ? 3.0 / 8.0 : (j == 2 ? -1.0 / 8.0 : 0.0);
+    else s = (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+    if (s != 0.0) add(out, cv[next_corner(x)], s * scale);
+    x = ctx.ct->swing_right(x);
+  }
+}
+
+// The point on the far side of the edge opposite corner |x| (across a sharp
+// edge it is replaced by the parallelogram completion of x's own triangle).
+void wing(const ButterflyContext& ctx, int32_t x, double w, std::vector<StencilTerm>& out) {
+  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+  const int32_t o = ctx.ct->opposite(x);
+  if (o >= 0 && !(*ctx.sharp)[x]) {
+    add(out, cv[o], w);
+  } else {
+    add(out, cv[next_corner(x)], w);
+    add(out, cv[prev_corner(x)], w);
+    add(out, cv[x], -w);
+  }
+}
+
+// Along a boundary or crease curve: the curve neighbour of v other than
+// |other|, or -1 when v has other than two sharp edges.
+int32_t curve_neighbour(const ButterflyContext& ctx, int32_t v, int32_t other) {
+  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+  const std::vector<uint8_t>& sharp = *ctx.sharp;
+  const int32_t first = ctx.ct->vertex_corner(v);
+  int32_t found = -1, count = 0, c = first, guard = 0;
+  while (c >= 0) {
+    if (sharp[prev_corner(c)]) {  // outgoing edge v -> next(c)
+      ++count;
+      if (cv[next_corner(c)] != other) found = cv[next_corner(c)];
+    }
+    const int32_t s = ctx.ct->swing_right(c);
+    if (s < 0) {  // open fan: its last incoming edge prev(c) -> v is a boundary
+      ++count;
+      if (cv[prev_corner(c)] != other) found = cv[prev_corner(c)];
+      break;
+    }
+    if (s == first || ++guard > ctx.ct->num_corners()) break;
+    c = s;
+  }
+  return count == 2 ? found : -1;
+}
+
+void four_point(const ButterflyContext& ctx, int32_t v1, int32_t v2, std::vector<StencilTerm>& out) {
+  add(out, v1, 9.0 / 16.0);
+  add(out, v2, 9.0 / 16.0);
+  const int32_t p = curve_neighbour(ctx, v1, v2);
+  if (p >= 0) add(out, p, -1.0 / 16.0);
+  else { add(out, v1, -2.0 / 16.0); add(out, v2, 1.0 / 16.0); }
+  const int32_t q = curve_neighbour(ctx, v2, v1);
+  if (q >= 0) add(out, q, -1.0 / 16.0);
+  else { add(out, v2, -2.0 / 16.0); add(out, v1, 1.0 / 16.0); }
+}
+
+}  // namespace
+
+void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out) {
+  out.clear();
+  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+  const CornerTable& ct = *ctx.ct;
+  const int32_t v1 = cv[next_corner(c)], v2 = cv[prev_corner(c)];
+  const int32_t d = ct.opposite(c);
+  if (d < 0 || (*ctx.sharp)[c]) {
+    four_point(ctx, v1, v2, out);
+    return;
+  }
+  const bool c1 = ctx.vclass.complete[v1], c2 = ctx.vclass.complete[v2];
+  const int32_t k1 = ctx.vclass.valence[v1], k2 = ctx.vclass.valence[v2];
+  // Corner at v1 whose next vertex is v2 is next(c); at v2 whose next is v1: next(d).
+  if (c1 && c2) {
+    if (k1 == 6 && k2 == 6) {
+      const double w = ctx.tension;
+      add(out, v1, 0.5 - w);
+      add(out, v2, 0.5 - w);
+      add(out, cv[c], 0.125 + 2 * w);
+      add(out, cv[d], 0.125 + 2 * w);
+      wing(ctx, prev_corner(c), -1.0 / 16.0 - w, out);  // across (a1, v1)
+      wing(ctx, next_corner(c), -1.0 / 16.0 - w, out);  // across (v2, a1)
+      wing(ctx, prev_corner(d), -1.0 / 16.0 - w, out);
+      wing(ctx, next_corner(d), -1.0 / 16.0 - w, out);
+      if (w > 0) {
+        // 10-point: the ring neighbours of v1 and v2 straight across from the
+        // edge (three steps round a valence-6 ring).
+        int32_t x = next_corner(c), y = next_corner(d);
+        for (int j = 0; j < 3; ++j) { x = ct.swing_right(x); y = ct.swing_right(y); }
+        add(out, cv[next_corner(x)], w);
+        add(out, cv[next_corner(y)], w);
+      }
+      return;
+    }
+    if (k1 != 6 && k2 != 6) {
+      extraordinary(ctx, next_corner(c), k1, 0.5, out);
+      extraordinary(ctx, next_corner(d), k2, 0.5, out);
+    } else if (k1 != 6) {
+      extraordinary(ctx, next_corner(c), k1, 1.0, out);
+    } else {
+      extraordinary(ctx, next_corner(d), k2, 1.0, out);
+    }
+    return;
+  }
+  if (c1) { extraordinary(ctx, next_corner(c), k1, 1.0, out); return; }
+  if (c2) { extraordinary(ctx, next_corner(d), k2, 1.0, out); return; }
+  add(out, v1, 0.5);
+  add(out, v2, 0.5);
+  add(out, cv[c], 0.125);
+  add(out, cv[d], 0.125);
+  wing(ctx, prev_corner(c), -1.0 / 16.0, out);
+  wing(ctx, next_corner(c), -1.0 / 16.0, out);
+  wing(ctx, prev_corner(d), -1.0 / 16.0, out);
+  wing(ctx, next_corner(d), -1.0 / 16.0, out);
+}
+
+}  // namespace iteas

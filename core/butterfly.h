@@ -1,0 +1,56 @@
+// Modified Butterfly stencils (Zorin, Schröder, Sweldens 1996, "Interpolating
+// subdivision for meshes with arbitrary topology"), SPEC §2.4. A stencil is a
+// list of (vertex, weight) terms over the *old* level; the caller applies it
+// to positions and to any per-vertex data (morph deltas), OpenSubdiv style.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "core/corner_table.h"
+#include "core/mesh.h"
+
+namespace iteas {
+
+struct StencilTerm {
+  int32_t vertex;
+  double weight;
+};
+
+// Per-vertex facts the rules need, computed once per level.
+struct VertexClass {
+  std::vector<int32_t> valence;   // number of incident edges
+  std::vector<uint8_t> complete;  // closed fan and no sharp (crease) edge
+};
+
+struct ButterflyContext {
+  const Mesh* mesh = nullptr;
+  const CornerTable* ct = nullptr;
+  // sharp[c] != 0 when the edge opposite corner c is a boundary or a crease.
+  const std::vector<uint8_t>* sharp = nullptr;
+  VertexClass vclass;
+  double tension = 0;  // w of the 10-point stencil, 0 <= w <= 1/16
+};
+
+// Marks boundary edges and, when crease_angle > 0, edges with theta >= it.
+void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+                      std::vector<uint8_t>& sharp);
+
+void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
+                       VertexClass& out, int threads = 1);
+
+// The stencil of the new vertex on the edge opposite corner c. Rules:
+//  * sharp edge (boundary or crease): 4-point curve rule -1/16, 9/16, 9/16, -1/16
+//    along the curve; at a curve end (a vertex with other than two sharp edges)
+//    the missing point is extrapolated linearly (2 v1 - v2).
+//  * interior edge, both endpoints complete: regular 8-point (10-point with
+//    tension) when both have valence 6; the extraordinary rule of the
+//    irregular endpoint; the average of both rules when both are irregular.
+//  * interior edge touching a boundary or crease (our documented rule): the
+//    extraordinary rule of the complete endpoint if exactly one is complete;
+//    if neither is, the 8-point stencil with every wing that lies across a
+//    sharp edge replaced by its parallelogram completion (the point a regular
+//    planar grid would have there), so flat regions stay flat.
+void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out);
+
+}  // namespace iteas

@@ -1,0 +1,149 @@
+#include "core/corner_table.h"
+
+#include <algorithm>
+#include <unordered_map>
+
+#include "core/parallel.h"
+
+namespace iteas {
+namespace {
+
+// Corners grouped by vertex in two passes (count, prefix sum, fill), as
+// meshoptimizer builds adjacency.
+struct VertexCorners {
+  std::vector<int32_t> offset;  // nv + 1
+  std::vector<int32_t> corners;
+  void build(const std::vector<int32_t>& corner_vertex, int32_t nv) {
+    offset.assign(size_t(nv) + 1, 0);
+    for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
+    for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
+    corners.resize(corner_vertex.size());
+    std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
+    for (size_t c = 0; c < corner_vertex.size(); ++c)
+      corners[fill[corner_vertex[c]]++] = static_cast<int32_t>(c);
+  }
+};
+
+}  // namespace
+
+TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) {
+  TopologyReport report;
+  const std::vector<int32_t>& cv = mesh.corner_vertex;
+  const int32_t nc = static_cast<int32_t>(cv.size());
+  VertexCorners vc;
+  vc.build(cv, mesh.num_vertices());
+  opposite_.assign(nc, -1);
+
+  // Per corner c: its edge runs a = v(next c) -> b = v(prev c). The opposite
+  // face has the edge b -> a. Count both directions to detect cuts.
+  std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
+  parallel_for(nc, threads, [&](int64_t begin, int64_t end) {
+    for (int64_t ci = begin; ci < end; ++ci) {
+      const int32_t c = static_cast<int32_t>(ci);
+      const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
+      int32_t reverse = 0, same = 0, match = -1;
+      for (int32_t i = vc.offset[b]; i < vc.offset[b + 1]; ++i) {
+        const int32_t y = vc.corners[i];
+        if (cv[next_corner(y)] == a) { ++reverse; match = prev_corner(y); }
+      }
+      for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i) {
+        const int32_t y = vc.corners[i];
+        if (cv[next_corner(y)] == b) ++same;  // includes c's own face
+      }
+      if (reverse == 1 && same == 1) {
+        opposite_[c] = match;
+      } else if (reverse + same >= 3) {
+        cut_kind[c] = 1;
+      } else if (same == 2) {
+        cut_kind[c] = 2;
+      }
+    }
+  });
+  // Each undirected edge counted once: by its smallest corner.
+  {
+    std::unordered_map<uint64_t, uint8_t> seen;
+    for (int32_t c = 0; c < nc; ++c) {
+      if (opposite_[c] >= 0) continue;
+      if (cut_kind[c] == 0) { ++report.boundary_edges; continue; }
+      int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
+      if (a > b) std::swap(a, b);
+      const uint64_t key = (uint64_t(uint32_t(a)) << 32) | uint32_t(b);
+      if (seen.emplace(key, cut_kind[c]).second) {
+        if (cut_kind[c] == 1) ++report.non_manifold_edges;
+        else ++report.orientation_conflicts;
+      }
+      ++report.boundary_edges;
+    }
+  }
+
+  // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
+  const int32_t nv = mesh.num_vertices();
+  vertex_corner_.assign(nv, -1);
+  std::vector<uint8_t> visited(nc, 0);
+  std::vector<int32_t> fan;
+  std::vector<std::pair<int32_t, int32_t>> wedge_clone;  // (old wedge, new vertex) pairs
+  std::unordered_map<uint64_t, int32_t> clone_of;
+  for (int32_t v = 0; v < nv; ++v) {
+    for (int32_t i = vc.offset[v]; i < vc.offset[v + 1]; ++i) {
+      const int32_t start = vc.corners[i];
+      if (visited[start]) continue;
+      // Walk left to the start of an open fan (or all the way round).
+      int32_t first = start;
+      for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
+      fan.clear();
+      int32_t c = first;
+      do {
+        fan.push_back(c);
+        visited[c] = 1;
+        c = swing_right(c);
+      } while (c >= 0 && c != first && !visited[c]);
+      int32_t target = v;
+      if (vertex_corner_[v] >= 0) {
+        if (!split_vertices) continue;
+        target = mesh.num_vertices();
+        for (int k = 0; k < 3; ++k) mesh.positions.push_back(mesh.positions[3 * size_t(v) + k]);
+        for (VertexChannel& ch : mesh.vertex_channels)
+          for (int k = 0; k < 3; ++k) ch.data.push_back(ch.data[3 * size_t(v) + k]);
+        vertex_corner_.push_back(-1);
+        ++report.split_vertices;
+      }
+      vertex_corner_[target] = first;
+      if (target == v) continue;
+      for (int32_t fc : fan) {
+        mesh.corner_vertex[fc] = target;
+        if (!mesh.has_wedges()) continue;
+        // Wedges belong to one vertex: clone a wedge shared across fans.
+        const int32_t w = mesh.corner_wedge[fc];
+        const uint64_t key = (uint64_t(uint32_t(w)) << 32) | uint32_t(target);
+        auto it = clone_of.find(key);
+        int32_t nw;
+        if (it != clone_of.end()) {
+          nw = it->second;
+        } else {
+          nw = mesh.add_wedge(target);
+          for (Channel& ch : mesh.channels)
+            for (int k = 0; k < ch.components; ++k)
+              ch.data[size_t(nw) * ch.components + k] = ch.data[size_t(w) * ch.components + k];
+          clone_of.emplace(key, nw);
+        }
+        mesh.corner_wedge[fc] = nw;
+      }
+    }
+  }
+  return report;
+}
+
+void CornerTable::compute_vertex_corners(const Mesh& mesh) {
+  vertex_corner_.assign(mesh.num_vertices(), -1);
+  const int32_t nc = static_cast<int32_t>(opposite_.size());
+  for (int32_t c = 0; c < nc; ++c) {
+    const int32_t v = mesh.corner_vertex[c];
+    // Prefer a corner whose previous edge is a boundary: the fan's first corner.
+    if (vertex_corner_[v] < 0 || opposite_[prev_corner(c)] < 0) {
+      if (vertex_corner_[v] >= 0 && opposite_[prev_corner(vertex_corner_[v])] < 0) continue;
+      vertex_corner_[v] = c;
+    }
+  }
+}
+
+}  // namespace iteas

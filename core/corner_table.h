@@ -1,0 +1,62 @@
+// Corner table (Rossignac; Draco's mesh/corner_table.h): corner c of face c/3,
+// next/previous by arithmetic, one opposite array (-1 = boundary), one corner
+// per vertex. Non-manifold edges (3+ faces) and edges whose two faces disagree
+// in orientation are cut into boundary edges; vertices whose corners form more
+// than one fan (non-manifold vertices) are split into one vertex per fan. All of
+// it is counted, never asserted.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "core/mesh.h"
+
+namespace iteas {
+
+inline int32_t next_corner(int32_t c) { return (c % 3 == 2) ? c - 2 : c + 1; }
+inline int32_t prev_corner(int32_t c) { return (c % 3 == 0) ? c + 2 : c - 1; }
+
+struct TopologyReport {
+  int64_t boundary_edges = 0;         // edges with one face after cutting
+  int64_t non_manifold_edges = 0;     // undirected edges used by 3+ faces (each cut)
+  int64_t orientation_conflicts = 0;  // 2-face edges whose faces disagree (cut)
+  int64_t split_vertices = 0;         // extra vertices made for non-manifold fans
+};
+
+class CornerTable {
+ public:
+  // Builds opposites for |mesh|. Splits non-manifold vertices in |mesh| (adding
+  // vertices with the same position, wedges follow) when |split_vertices|.
+  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1);
+
+  int32_t opposite(int32_t c) const { return opposite_[c]; }
+  // For a boundary vertex: the corner whose fan walk by swing_right() covers
+  // the whole fan (its previous edge is a boundary edge). -1 for unused vertices.
+  int32_t vertex_corner(int32_t v) const { return vertex_corner_[v]; }
+  int32_t num_corners() const { return static_cast<int32_t>(opposite_.size()); }
+
+  // The corner at the same vertex in the neighbouring face across the edge
+  // (c, next(c))'s opposite side; -1 at a boundary. Walks the fan one way.
+  int32_t swing_right(int32_t c) const {
+    const int32_t o = opposite_[next_corner(c)];
+    return o < 0 ? -1 : next_corner(o);
+  }
+  int32_t swing_left(int32_t c) const {
+    const int32_t o = opposite_[prev_corner(c)];
+    return o < 0 ? -1 : prev_corner(o);
+  }
+
+  std::vector<int32_t>& opposites() { return opposite_; }
+  const std::vector<int32_t>& opposites() const { return opposite_; }
+  std::vector<int32_t>& vertex_corners() { return vertex_corner_; }
+
+  // Recomputes vertex_corner for every vertex from the opposites (used after
+  // a refinement pass that derived opposites directly).
+  void compute_vertex_corners(const Mesh& mesh);
+
+ private:
+  std::vector<int32_t> opposite_;
+  std::vector<int32_t> vertex_corner_;
+};
+
+}  // namespace iteas

@@ -1,0 +1,52 @@
+// Refinement and output options (SPEC §3), parsed from name/value pairs so the
+// CLI (--kebab-case) and HTTP (query parameters) share one parser.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "core/angles.h"
+
+namespace iteas {
+
+enum class Mode { kIteas, kUniform, kFixed };
+enum class Scope { kInput, kLevel };
+enum class Select { kAbove, kBelow };
+
+struct RefineOptions {
+  Mode mode = Mode::kIteas;
+  int levels = 6;  // resolved default: 6 for iteas, 2 for uniform/fixed
+  ThresholdSpec threshold;
+  Scope threshold_scope = Scope::kInput;
+  Select select = Select::kAbove;
+  double crease_angle = 0;  // 0 = off
+  int64_t max_triangles = 5000000;
+  double tension = 0;
+  int threads = 0;  // 0 = all cores
+};
+
+struct OutputOptions {
+  std::string output;  // glb, gltf, drc, obj, ply; empty = by context
+  bool draco = true;
+  int position_bits = 14, normal_bits = 10, texcoord_bits = 12, color_bits = 10, generic_bits = 12;
+  int draco_level = 7;
+};
+
+struct Options {
+  RefineOptions refine;
+  OutputOptions out;
+};
+
+// Parses |pairs| (names in snake_case or kebab-case). On error returns false
+// and sets |error| to a message that names the option.
+bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs, Options* options,
+                   std::string* error, std::string* bad_option = nullptr);
+
+const char* mode_name(Mode m);
+
+// The names parse_options accepts (snake_case).
+const std::vector<std::string>& option_names();
+
+}  // namespace iteas

@@ -1,0 +1,17 @@
+// A deterministic parallel-for: the range is cut into equal contiguous blocks,
+// one per thread, so results never depend on scheduling or on the thread count
+// as long as each index writes only its own outputs.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+
+namespace iteas {
+
+// Runs body(begin, end) over [0, n) on up to |threads| threads (<= 0: all cores).
+// Small ranges run inline.
+void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body);
+
+int hardware_threads();
+
+}  // namespace iteas

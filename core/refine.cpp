@@ -1,0 +1,726 @@
+#include "core/refine.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <numeric>
+#include <unordered_map>
+
+#include "core/butterfly.h"
+#include "core/parallel.h"
+
+namespace iteas {
+namespace {
+
+template <typename T>
+int64_t vbytes(const std::vector<T>& v) { return int64_t(v.capacity() * sizeof(T)); }
+
+// Fixed-size chunks make prefix sums (and so all numbering) independent of
+// the thread count.
+constexpr int64_t kChunk = 8192;
+
+// ---------------------------------------------------------------------------
+// Wedge data: blended along an edge on one side (SPEC §2 "Attributes").
+
+void blend_skin(Mesh& m, const Channel& joints, Channel& weights, int32_t out, int32_t a, int32_t b) {
+  struct Influence { float joint, weight; };
+  Influence inf[8];
+  int n = 0;
+  const int jc = joints.components, wc = weights.components;
+  for (int32_t src : {a, b}) {
+    for (int k = 0; k < std::min(jc, wc); ++k) {
+      const float j = joints.data[size_t(src) * jc + k], w = 0.5f * weights.data[size_t(src) * wc + k];
+      if (w <= 0) continue;
+      int i = 0;
+      while (i < n && inf[i].joint != j) ++i;
+      if (i == n) inf[n++] = {j, w};
+      else inf[i].weight += w;
+    }
+  }
+  // Top 4 by weight (ties: lower joint first), renormalised.
+  std::sort(inf, inf + n, [](const Influence& x, const Influence& y) {
+    return x.weight != y.weight ? x.weight > y.weight : x.joint < y.joint;
+  });
+  n = std::min(n, std::min(4, std::min(jc, wc)));
+  float sum = 0;
+  for (int i = 0; i < n; ++i) sum += inf[i].weight;
+  Channel& jout = m.channels[weights.pair];
+  for (int k = 0; k < jc; ++k) jout.data[size_t(out) * jc + k] = k < n ? inf[k].joint : 0.0f;
+  for (int k = 0; k < wc; ++k) weights.data[size_t(out) * wc + k] = (k < n && sum > 0) ? inf[k].weight / sum : 0.0f;
+}
+
+void blend_wedge(Mesh& m, int32_t out, int32_t a, int32_t b) {
+  for (Channel& ch : m.channels) {
+    const int n = ch.components;
+    float* o = &ch.data[size_t(out) * n];
+    const float* x = &ch.data[size_t(a) * n];
+    const float* y = &ch.data[size_t(b) * n];
+    switch (ch.kind) {
+      case ChannelKind::kJoints:
+        if (ch.pair < 0) for (int k = 0; k < n; ++k) o[k] = x[k];  // no weights: nearest
+        break;  // otherwise written with its WEIGHTS channel
+      case ChannelKind::kWeights:
+        if (ch.pair >= 0) blend_skin(m, m.channels[ch.pair], ch, out, a, b);
+        else for (int k = 0; k < n; ++k) o[k] = 0.5f * (x[k] + y[k]);
+        break;
+      case ChannelKind::kTangent:
+        for (int k = 0; k < std::min(n, 3); ++k) o[k] = 0.5f * (x[k] + y[k]);
+        if (n == 4) o[3] = x[3];  // handedness
+        break;
+      default:
+        for (int k = 0; k < n; ++k) o[k] = 0.5f * (x[k] + y[k]);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------
+
+struct State {
+  CornerTable ct;
+  std::vector<float> theta;    // per corner (adaptive levels and creases)
+  std::vector<uint8_t> sharp;  // per corner
+  std::vector<uint8_t> green;  // per face: 0, 1 (first child), 2 (second child)
+  ButterflyContext bctx;
+  int threads = 1;
+  int64_t peak = 0;
+};
+
+void note_peak(State& s, const Mesh& m, int64_t extra) {
+  const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) +
+                    vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.bctx.vclass.valence) +
+                    vbytes(s.bctx.vclass.complete) + extra;
+  s.peak = std::max(s.peak, b);
+}
+
+// Applies the Butterfly stencil of the edge at corner c to the new vertex nv.
+void apply_stencil(Mesh& m, const ButterflyContext& ctx, int32_t c, int32_t nv, std::vector<StencilTerm>& terms) {
+  butterfly_stencil(ctx, c, terms);
+  double p[3] = {0, 0, 0};
+  for (const StencilTerm& t : terms)
+    for (int k = 0; k < 3; ++k) p[k] += t.weight * m.positions[3 * size_t(t.vertex) + k];
+  for (int k = 0; k < 3; ++k) m.positions[3 * size_t(nv) + k] = float(p[k]);
+  for (VertexChannel& vc : m.vertex_channels) {
+    double d[3] = {0, 0, 0};
+    for (const StencilTerm& t : terms)
+      for (int k = 0; k < 3; ++k) d[k] += t.weight * vc.data[3 * size_t(t.vertex) + k];
+    for (int k = 0; k < 3; ++k) vc.data[3 * size_t(nv) + k] = float(d[k]);
+  }
+}
+
+void grow_vertices(Mesh& m, int64_t nv) {
+  m.positions.resize(3 * size_t(nv));
+  for (VertexChannel& vc : m.vertex_channels) vc.data.resize(3 * size_t(nv));
+}
+
+void grow_wedges(Mesh& m, int64_t nw) {
+  m.wedge_vertex.resize(nw);
+  for (Channel& ch : m.channels) ch.data.resize(size_t(nw) * ch.components);
+}
+
+// Prepares the per-level analysis on the current mesh (ct must be valid).
+void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
+  if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
+  else std::vector<float>().swap(s.theta);
+  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp);
+  s.bctx.mesh = &m;
+  s.bctx.ct = &s.ct;
+  s.bctx.sharp = &s.sharp;
+  s.bctx.tension = o.tension;
+  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads);
+}
+
+// ---------------------------------------------------------------------------
+// Uniform level: every edge splits. Connectivity of the children, including
+// their opposites, follows from the parent's by index arithmetic, so no
+// adjacency is rebuilt. Children of face f are 4f+j: child j (< 3) keeps
+// parent vertex j at local corner j, child 3 is the centre; the half of the
+// parent edge opposite corner k next to vertex k+1 (k+2) is the edge opposite
+// local corner k of child k+1 (k+2).
+void uniform_level(State& s, Mesh& m, LevelStats& ls) {
+  const int32_t nf = m.num_faces(), nv = m.num_vertices();
+  const int64_t nc = 3 * int64_t(nf);
+  const std::vector<int32_t>& opp = s.ct.opposites();
+  auto canonical = [&](int64_t c) { return opp[c] < 0 || c < opp[c]; };
+
+  // Topology pass 1: number edges (canonical corners) in corner order.
+  const int64_t chunks = (nc + kChunk - 1) / kChunk;
+  std::vector<int64_t> edges_in(chunks + 1, 0), wedges_in(chunks + 1, 0);
+  const bool wedges = m.has_wedges();
+  parallel_for(chunks, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) {
+      int64_t ne = 0, nw = 0;
+      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
+        if (!canonical(c)) continue;
+        ++ne;
+        if (!wedges) continue;
+        const int32_t o = opp[c];
+        const bool shared = o >= 0 && m.corner_wedge[next_corner(int32_t(c))] == m.corner_wedge[prev_corner(o)] &&
+                            m.corner_wedge[prev_corner(int32_t(c))] == m.corner_wedge[next_corner(o)];
+        nw += (o < 0 || shared) ? 1 : 2;
+      }
+      edges_in[k + 1] = ne;
+      wedges_in[k + 1] = nw;
+    }
+  });
+  for (int64_t k = 0; k < chunks; ++k) {
+    edges_in[k + 1] += edges_in[k];
+    wedges_in[k + 1] += wedges_in[k];
+  }
+  const int64_t ne = edges_in[chunks];
+  const int32_t nw0 = m.wedge_count();
+  std::vector<int32_t> evert(nc), ewedge(wedges ? nc : 0);
+  grow_vertices(m, int64_t(nv) + ne);
+  if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
+
+  // Data pass: stencils from the old level; new wedges blended per side.
+  parallel_for(chunks, s.threads, [&](int64_t b, int64_t e) {
+    std::vector<StencilTerm> terms;
+    for (int64_t k = b; k < e; ++k) {
+      int64_t id = nv + edges_in[k], wid = nw0 + wedges_in[k];
+      for (int64_t ci = k * kChunk, end = std::min(nc, (k + 1) * kChunk); ci < end; ++ci) {
+        if (!canonical(ci)) continue;
+        const int32_t c = int32_t(ci), o = opp[c], v = int32_t(id++);
+        evert[c] = v;
+        apply_stencil(m, s.bctx, c, v, terms);
+        if (!wedges) continue;
+        const int32_t wf = int32_t(wid++);
+        m.wedge_vertex[wf] = v;
+        blend_wedge(m, wf, m.corner_wedge[next_corner(c)], m.corner_wedge[prev_corner(c)]);
+        ewedge[c] = wf;
+        if (o < 0) continue;
+        const bool shared = m.corner_wedge[next_corner(c)] == m.corner_wedge[prev_corner(o)] &&
+                            m.corner_wedge[prev_corner(c)] == m.corner_wedge[next_corner(o)];
+        if (shared) { ewedge[o] = wf; continue; }
+        const int32_t wg = int32_t(wid++);
+        m.wedge_vertex[wg] = v;
+        blend_wedge(m, wg, m.corner_wedge[next_corner(o)], m.corner_wedge[prev_corner(o)]);
+        ewedge[o] = wg;
+      }
+    }
+  });
+  parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t c = b; c < e; ++c)
+      if (!canonical(c)) evert[c] = evert[opp[c]];
+  });
+
+  // Topology pass 2: children.
+  std::vector<int32_t> cv(12 * size_t(nf)), cw(wedges ? 12 * size_t(nf) : 0);
+  std::vector<int32_t> fg(m.face_group.empty() ? 0 : 4 * size_t(nf));
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t f = b; f < e; ++f) {
+      const size_t p = 3 * size_t(f), q = 12 * size_t(f);
+      for (int j = 0; j < 3; ++j) {
+        const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
+        cv[q + 3 * j + j] = m.corner_vertex[p + j];
+        cv[q + 3 * j + j1] = evert[p + j2];
+        cv[q + 3 * j + j2] = evert[p + j1];
+        cv[q + 9 + j] = evert[p + j];
+        if (wedges) {
+          cw[q + 3 * j + j] = m.corner_wedge[p + j];
+          cw[q + 3 * j + j1] = ewedge[p + j2];
+          cw[q + 3 * j + j2] = ewedge[p + j1];
+          cw[q + 9 + j] = ewedge[p + j];
+        }
+      }
+      if (!fg.empty()) for (int j = 0; j < 4; ++j) fg[4 * size_t(f) + j] = m.face_group[f];
+    }
+  });
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
+  std::vector<int32_t>().swap(evert);
+  std::vector<int32_t>().swap(ewedge);
+  m.corner_vertex.swap(cv);
+  std::vector<int32_t>().swap(cv);
+  if (wedges) { m.corner_wedge.swap(cw); std::vector<int32_t>().swap(cw); }
+  if (!fg.empty()) m.face_group.swap(fg);
+  std::vector<int32_t>().swap(fg);
+  std::vector<float>().swap(s.theta);
+  std::vector<uint8_t>().swap(s.sharp);
+  std::vector<int32_t>().swap(s.bctx.vclass.valence);
+  std::vector<uint8_t>().swap(s.bctx.vclass.complete);
+
+  // Child opposites from the parent's alone.
+  std::vector<int32_t> nopp(12 * size_t(nf));
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t f = b; f < e; ++f) {
+      const int64_t centre = 4 * f + 3;
+      for (int k = 0; k < 3; ++k) {
+        const int64_t child = 4 * f + k;
+        nopp[3 * child + k] = int32_t(3 * centre + k);
+        nopp[3 * centre + k] = int32_t(3 * child + k);
+        const int32_t d = opp[3 * f + k];
+        const int64_t a = 3 * (4 * f + (k + 1) % 3) + k, c = 3 * (4 * f + (k + 2) % 3) + k;
+        if (d < 0) { nopp[a] = nopp[c] = -1; continue; }
+        const int64_t g = d / 3, l = d % 3;
+        nopp[a] = int32_t(3 * (4 * g + (l + 2) % 3) + l);
+        nopp[c] = int32_t(3 * (4 * g + (l + 1) % 3) + l);
+      }
+    }
+  });
+  note_peak(s, m, vbytes(nopp));
+  s.ct.opposites().swap(nopp);
+  std::vector<int32_t>().swap(nopp);
+  s.ct.compute_vertex_corners(m);
+  if (!s.green.empty()) s.green.assign(m.num_faces(), 0);
+
+  ls.faces_selected = nf;
+  ls.red_splits = nf;
+  ls.vertices_added = ne;
+}
+
+// ---------------------------------------------------------------------------
+// Adaptive level with red-green closure.
+
+struct Plan {
+  std::vector<uint8_t> split;   // per corner: its edge gets a new vertex
+  std::vector<uint8_t> merged;  // per face (first green child): pair merged
+  int64_t triangles = 0;
+};
+
+// Closure of a selection (least fixed point, so independent of order):
+//  * a normal face with 2 split edges gets its third split (1 -> 4);
+//  * a green pair with any split edge or a selected member is merged back
+//    into its parent, whose two other edges then split (it is split 1 -> 4).
+void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& selected, Plan& plan) {
+  const int32_t nf = m.num_faces();
+  const std::vector<uint8_t>& green = s.green;
+  plan.split.assign(3 * size_t(nf), 0);
+  plan.merged.assign(nf, 0);
+  std::vector<uint8_t> sel(nf, 0);
+  std::vector<int32_t> work;
+  auto mark = [&](int32_t c) {
+    if (plan.split[c]) return;
+    plan.split[c] = 1;
+    work.push_back(c / 3);
+    const int32_t o = s.ct.opposite(c);
+    if (o >= 0) { plan.split[o] = 1; work.push_back(o / 3); }
+  };
+  for (int32_t f : selected) {
+    sel[f] = 1;
+    if (green[f]) work.push_back(f);
+    else for (int k = 0; k < 3; ++k) mark(3 * f + k);
+  }
+  while (!work.empty()) {
+    const int32_t f = work.back();
+    work.pop_back();
+    if (green[f]) {
+      const int32_t first = green[f] == 1 ? f : f - 1;
+      if (plan.merged[first]) continue;
+      bool need = sel[first] || sel[first + 1];
+      for (int k = 0; k < 6 && !need; ++k) need = plan.split[3 * first + k];
+      if (!need) continue;
+      plan.merged[first] = 1;
+      mark(3 * (first + 1) + 0);  // parent edge (b, c)
+      mark(3 * first + 1);        // parent edge (c, a)
+    } else {
+      const int sc = plan.split[3 * f] + plan.split[3 * f + 1] + plan.split[3 * f + 2];
+      if (sc == 2) for (int k = 0; k < 3; ++k) mark(3 * f + k);
+    }
+  }
+  // The inner edge of a merged pair disappears with it.
+  int64_t tris = 0;
+  for (int32_t f = 0; f < nf; ++f) {
+    if (green[f] == 2) continue;
+    if (green[f] == 1) {
+      if (plan.merged[f]) {
+        plan.split[3 * f + 0] = plan.split[3 * (f + 1) + 1] = 0;
+        tris += 4 + plan.split[3 * f + 2] + plan.split[3 * (f + 1) + 2];
+      } else {
+        tris += 2;
+      }
+      continue;
+    }
+    const int sc = plan.split[3 * f] + plan.split[3 * f + 1] + plan.split[3 * f + 2];
+    tris += sc == 0 ? 1 : (sc == 1 ? 2 : 4);
+  }
+  plan.triangles = tris;
+}
+
+struct Emitter {
+  Mesh& m;
+  bool wedges, groups;
+  std::vector<int32_t> cv, cw, fg;
+  std::vector<uint8_t> green;
+  LevelStats& ls;
+
+  void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag) {
+    for (int k = 0; k < 3; ++k) {
+      cv.push_back(v[k]);
+      if (wedges) cw.push_back(w[k]);
+    }
+    if (groups) fg.push_back(g);
+    green.push_back(gflag);
+  }
+  // A face whose edges opposite local corner k split at mid[k] (-1: not):
+  // none -> kept; one -> green bisection; three -> red 1 -> 4.
+  void split(const int32_t v[3], const int32_t w[3], const int32_t mid[3], const int32_t mw[3], int32_t g) {
+    const int sc = (mid[0] >= 0) + (mid[1] >= 0) + (mid[2] >= 0);
+    if (sc == 0) { face(v, w, g, 0); return; }
+    if (sc == 1) {
+      const int k = mid[0] >= 0 ? 0 : (mid[1] >= 0 ? 1 : 2);
+      const int k1 = (k + 1) % 3, k2 = (k + 2) % 3;
+      // Parent (a, b, c) = (v[k1], v[k2], v[k]), m on (a, b):
+      // first child (a, m, c), second (m, b, c).
+      const int32_t v1[3] = {v[k1], mid[k], v[k]}, w1[3] = {w[k1], mw[k], w[k]};
+      const int32_t v2[3] = {mid[k], v[k2], v[k]}, w2[3] = {mw[k], w[k2], w[k]};
+      face(v1, w1, g, 1);
+      face(v2, w2, g, 2);
+      ++ls.green_splits;
+      return;
+    }
+    ++ls.red_splits;
+    for (int j = 0; j < 3; ++j) {
+      const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
+      int32_t cvj[3], cwj[3];
+      cvj[j] = v[j]; cwj[j] = w[j];
+      cvj[j1] = mid[j2]; cwj[j1] = mw[j2];
+      cvj[j2] = mid[j1]; cwj[j2] = mw[j1];
+      face(cvj, cwj, g, 0);
+    }
+    face(mid, mw, g, 0);
+  }
+};
+
+void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
+  const int32_t nf = m.num_faces(), nv = m.num_vertices();
+  const int64_t nc = 3 * int64_t(nf);
+  const bool wedges = m.has_wedges();
+  const std::vector<int32_t>& opp = s.ct.opposites();
+
+  // Topology: number the split edges and their wedges in corner order.
+  std::vector<int32_t> evert(nc, -1), ewedge(nc, -1), edges;
+  int32_t next_v = nv, next_w = m.wedge_count();
+  std::vector<std::pair<int32_t, int32_t>> wedge_src;  // (a, b) per new wedge
+  for (int32_t c = 0; c < nc; ++c) {
+    if (!plan.split[c] || !(opp[c] < 0 || c < opp[c])) continue;
+    const int32_t o = opp[c];
+    evert[c] = next_v;
+    if (o >= 0) evert[o] = next_v;
+    ++next_v;
+    edges.push_back(c);
+    if (!wedges) continue;
+    ewedge[c] = next_w++;
+    wedge_src.emplace_back(m.corner_wedge[next_corner(c)], m.corner_wedge[prev_corner(c)]);
+    if (o < 0) continue;
+    if (m.corner_wedge[next_corner(c)] == m.corner_wedge[prev_corner(o)] &&
+        m.corner_wedge[prev_corner(c)] == m.corner_wedge[next_corner(o)]) {
+      ewedge[o] = ewedge[c];
+    } else {
+      ewedge[o] = next_w++;
+      wedge_src.emplace_back(m.corner_wedge[next_corner(o)], m.corner_wedge[prev_corner(o)]);
+    }
+  }
+  // Data pass.
+  grow_vertices(m, next_v);
+  parallel_for(int64_t(edges.size()), s.threads, [&](int64_t b, int64_t e) {
+    std::vector<StencilTerm> terms;
+    for (int64_t i = b; i < e; ++i) apply_stencil(m, s.bctx, edges[i], nv + int32_t(i), terms);
+  });
+  if (wedges) {
+    const int32_t w0 = m.num_wedges();
+    grow_wedges(m, next_w);
+    for (int32_t c = 0; c < nc; ++c)
+      if (ewedge[c] >= 0) m.wedge_vertex[ewedge[c]] = evert[c];
+    parallel_for(int64_t(wedge_src.size()), s.threads, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) blend_wedge(m, w0 + int32_t(i), wedge_src[i].first, wedge_src[i].second);
+    });
+  }
+
+  // Topology: emit the new faces in parent order.
+  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls};
+  em.cv.reserve(size_t(plan.triangles) * 3);
+  if (wedges) em.cw.reserve(size_t(plan.triangles) * 3);
+  em.green.reserve(plan.triangles);
+  const int32_t none[3] = {-1, -1, -1};
+  for (int32_t f = 0; f < nf; ++f) {
+    const uint8_t gflag = s.green[f];
+    if (gflag == 2) continue;
+    const int32_t g = m.group_of(f);
+    if (gflag == 1) {
+      const int32_t f2 = f + 1;
+      if (!plan.merged[f]) {
+        for (int32_t h : {f, f2}) {
+          int32_t v[3], w[3];
+          for (int k = 0; k < 3; ++k) { v[k] = m.corner_vertex[3 * h + k]; w[k] = m.wedge_of(3 * h + k); }
+          em.face(v, w, m.group_of(h), h == f ? 1 : 2);
+        }
+        continue;
+      }
+      // Merge back: parent (a, b, c) with the old midpoint m on (a, b).
+      ++ls.greens_merged;
+      ++ls.red_splits;
+      const int32_t a = m.corner_vertex[3 * f], bb = m.corner_vertex[3 * f2 + 1], c = m.corner_vertex[3 * f + 2];
+      const int32_t wa = m.wedge_of(3 * f), wb = m.wedge_of(3 * f2 + 1), wc = m.wedge_of(3 * f + 2);
+      const int32_t m2 = m.corner_vertex[3 * f + 1], w2 = m.wedge_of(3 * f + 1);
+      const int32_t m0 = evert[3 * f2 + 0], w0 = ewedge[3 * f2 + 0];
+      const int32_t m1 = evert[3 * f + 1], w1 = ewedge[3 * f + 1];
+      // Children of the regular split; the halves (a, m) and (m, b) may split.
+      const int32_t F0v[3] = {a, m2, m1}, F0w[3] = {wa, w2, w1};
+      const int32_t F0m[3] = {-1, -1, evert[3 * f + 2]}, F0mw[3] = {-1, -1, ewedge[3 * f + 2]};
+      const int32_t F1v[3] = {m2, bb, m0}, F1w[3] = {w2, wb, w0};
+      const int32_t F1m[3] = {-1, -1, evert[3 * f2 + 2]}, F1mw[3] = {-1, -1, ewedge[3 * f2 + 2]};
+      const int32_t F2v[3] = {m1, m0, c}, F2w[3] = {w1, w0, wc};
+      const int32_t F3v[3] = {m0, m1, m2}, F3w[3] = {w0, w1, w2};
+      em.split(F0v, F0w, F0m, F0mw, g);
+      em.split(F1v, F1w, F1m, F1mw, g);
+      em.split(F2v, F2w, none, none, g);
+      em.split(F3v, F3w, none, none, g);
+      continue;
+    }
+    int32_t v[3], w[3], mid[3], mw[3];
+    for (int k = 0; k < 3; ++k) {
+      v[k] = m.corner_vertex[3 * f + k];
+      w[k] = m.wedge_of(3 * f + k);
+      mid[k] = evert[3 * f + k];
+      mw[k] = wedges ? ewedge[3 * f + k] : mid[k];
+    }
+    em.split(v, w, mid, mw, g);
+  }
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(em.cv) + vbytes(em.cw) + vbytes(em.fg) +
+                      vbytes(em.green) + vbytes(plan.split) + vbytes(plan.merged));
+  m.corner_vertex.swap(em.cv);
+  if (wedges) m.corner_wedge.swap(em.cw);
+  if (em.groups) m.face_group.swap(em.fg);
+  s.green.swap(em.green);
+  ls.vertices_added = next_v - nv;
+  s.ct.build(m, false, s.threads);
+}
+
+// ---------------------------------------------------------------------------
+// Attributes that are recomputed rather than interpolated.
+
+void recompute_normals(Mesh& m) {
+  int ni = -1;
+  for (size_t i = 0; i < m.channels.size(); ++i)
+    if (m.channels[i].kind == ChannelKind::kNormal && m.channels[i].components == 3) { ni = int(i); break; }
+  if (ni < 0 || !m.has_wedges()) return;
+  Channel& nch = m.channels[ni];
+  // Smoothing groups: wedges of one vertex with bit-identical (interpolated)
+  // normals share a normal, so UV seams stay smooth and hard edges stay hard.
+  struct Key {
+    int32_t v;
+    float n[3];
+    bool operator==(const Key& o) const {
+      return v == o.v && std::memcmp(n, o.n, sizeof n) == 0;
+    }
+  };
+  struct Hash {
+    size_t operator()(const Key& k) const {
+      uint32_t b[3];
+      std::memcpy(b, k.n, sizeof b);
+      return (size_t(uint32_t(k.v)) * 0x9E3779B97F4A7C15ull) ^ (b[0] * 73856093u) ^ (b[1] * 19349663u) ^ (b[2] * 83492791u);
+    }
+  };
+  const int32_t nw = m.num_wedges();
+  std::unordered_map<Key, int32_t, Hash> groups;
+  groups.reserve(nw);
+  std::vector<int32_t> group(nw);
+  for (int32_t w = 0; w < nw; ++w) {
+    Key k{m.wedge_vertex[w], {nch.data[3 * size_t(w)], nch.data[3 * size_t(w) + 1], nch.data[3 * size_t(w) + 2]}};
+    group[w] = groups.emplace(k, int32_t(groups.size())).first->second;
+  }
+  std::vector<double> acc(3 * groups.size(), 0.0);
+  const int32_t nf = m.num_faces();
+  const float* p = m.positions.data();
+  for (int32_t f = 0; f < nf; ++f) {
+    const float* a = p + 3 * size_t(m.corner_vertex[3 * f]);
+    const float* b = p + 3 * size_t(m.corner_vertex[3 * f + 1]);
+    const float* c = p + 3 * size_t(m.corner_vertex[3 * f + 2]);
+    const double u[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
+    const double v[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
+    const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
+    for (int k = 0; k < 3; ++k) {  // area-weighted
+      const int32_t gi = group[m.corner_wedge[3 * f + k]];
+      for (int i = 0; i < 3; ++i) acc[3 * size_t(gi) + i] += n[i];
+    }
+  }
+  for (int32_t w = 0; w < nw; ++w) {
+    const double* n = &acc[3 * size_t(group[w])];
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    float* out = &nch.data[3 * size_t(w)];
+    if (len > 0) {
+      for (int i = 0; i < 3; ++i) out[i] = float(n[i] / len);
+    } else {
+      const double l2 = std::sqrt(double(out[0]) * out[0] + double(out[1]) * out[1] + double(out[2]) * out[2]);
+      if (l2 > 0) for (int i = 0; i < 3; ++i) out[i] = float(out[i] / l2);
+    }
+  }
+}
+
+void orthogonalise_tangents(Mesh& m) {
+  const int ni = m.find_channel("NORMAL");
+  for (Channel& ch : m.channels) {
+    if (ch.kind != ChannelKind::kTangent || ch.components < 3) continue;
+    const int32_t nw = m.num_wedges();
+    for (int32_t w = 0; w < nw; ++w) {
+      float* t = &ch.data[size_t(w) * ch.components];
+      double x[3] = {t[0], t[1], t[2]};
+      if (ni >= 0 && m.channels[ni].components == 3) {
+        const float* n = &m.channels[ni].data[3 * size_t(w)];
+        const double d = x[0] * n[0] + x[1] * n[1] + x[2] * n[2];
+        for (int i = 0; i < 3; ++i) x[i] -= d * n[i];
+      }
+      const double len = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
+      if (len > 0) for (int i = 0; i < 3; ++i) t[i] = float(x[i] / len);
+      if (ch.components == 4) t[3] = t[3] < 0 ? -1.0f : 1.0f;
+    }
+  }
+}
+
+// Largest theta of each face over its non-sharp edges; NaN when none.
+void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
+  const int32_t nf = m.num_faces();
+  out.assign(nf, std::numeric_limits<float>::quiet_NaN());
+  for (int32_t f = 0; f < nf; ++f) {
+    float best = std::numeric_limits<float>::quiet_NaN();
+    for (int k = 0; k < 3; ++k) {
+      const float t = s.theta[3 * f + k];
+      if (std::isnan(t) || s.sharp[3 * f + k]) continue;
+      if (std::isnan(best) || t > best) best = t;
+    }
+    out[f] = best;
+  }
+}
+
+}  // namespace
+
+int64_t mesh_bytes(const Mesh& m) {
+  int64_t b = vbytes(m.positions) + vbytes(m.corner_vertex) + vbytes(m.corner_wedge) + vbytes(m.face_group) +
+              vbytes(m.wedge_vertex);
+  for (const Channel& c : m.channels) b += vbytes(c.data);
+  for (const VertexChannel& c : m.vertex_channels) b += vbytes(c.data);
+  return b;
+}
+
+RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hooks, RefineStats* st) {
+  RefineStats& stats = *st;
+  stats = RefineStats();
+  auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };
+  auto cancelled = [&] { return hooks.cancel && hooks.cancel->load(std::memory_order_relaxed); };
+  auto progress = [&](int level, const char* phase, double fr) { if (hooks.progress) hooks.progress(level, phase, fr); };
+
+  State s;
+  s.threads = o.threads <= 0 ? hardware_threads() : o.threads;
+  // Wedges without channels carry nothing: drop them (every vertex its own wedge).
+  if (m.channels.empty()) { std::vector<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }
+  if (std::all_of(m.face_group.begin(), m.face_group.end(), [](int32_t g) { return g == 0; }))
+    std::vector<int32_t>().swap(m.face_group);
+
+  const double t0 = now();
+  stats.triangles_in = m.num_faces();
+  stats.vertices_in = m.wedge_count();
+  stats.topology = s.ct.build(m, true, s.threads);
+  stats.ms_topology = now() - t0;
+  const double crease = o.crease_angle;
+  const bool adaptive = o.mode != Mode::kUniform;
+
+  // Threshold and the "before" picture, on the input.
+  edge_angles(m, s.ct, s.theta, s.threads);
+  double T_input = compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
+  if (o.mode == Mode::kUniform) T_input = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean;
+  stats.threshold = T_input;
+  stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
+  stats.quality_before = triangle_quality(m);
+  if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
+  note_peak(s, m, 0);
+
+  const double t1 = now();
+  int levels_done = 0;
+  stats.stopped_by = "max_levels";
+  std::vector<float> fmax;
+  std::vector<int32_t> selected;
+  for (int level = 1; level <= o.levels; ++level) {
+    if (cancelled()) { stats.stopped_by = "cancelled"; break; }
+    const double lt0 = now();
+    progress(level, "analyse", 0.0);
+    LevelStats ls;
+    ls.level = level;
+    const bool use_uniform_path = !adaptive && !hooks.force_adaptive_path;
+    analyse(s, m, o, !use_uniform_path || crease > 0);
+    if (!adaptive) {
+      ls.threshold = T_input;
+      if (int64_t(m.num_faces()) * 4 > o.max_triangles) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
+      if (cancelled()) { stats.stopped_by = "cancelled"; break; }
+      progress(level, "refine", 0.0);
+      if (use_uniform_path) {
+        uniform_level(s, m, ls);
+      } else {
+        selected.resize(m.num_faces());
+        std::iota(selected.begin(), selected.end(), 0);
+        Plan plan;
+        close_selection(s, m, selected, plan);
+        ls.faces_selected = m.num_faces();
+        adaptive_level(s, m, plan, ls);
+      }
+    } else {
+      const double T = o.threshold_scope == Scope::kLevel && o.mode == Mode::kIteas
+                           ? compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads)
+                           : T_input;
+      ls.threshold = T;
+      if (level == 1) stats.threshold = T;
+      face_max_theta(s, m, fmax);
+      selected.clear();
+      for (int32_t f = 0; f < m.num_faces(); ++f) {
+        const float t = fmax[f];
+        if (std::isnan(t)) continue;
+        if (o.select == Select::kAbove ? t > T : t < T) selected.push_back(f);
+      }
+      if (selected.empty()) { stats.stopped_by = "converged"; break; }
+      Plan plan;
+      close_selection(s, m, selected, plan);
+      bool clamped = false;
+      if (plan.triangles > o.max_triangles) {
+        // Budget: the most bent faces first; the largest prefix that fits.
+        clamped = true;
+        std::stable_sort(selected.begin(), selected.end(), [&](int32_t a, int32_t b) { return fmax[a] > fmax[b]; });
+        size_t lo = 0, hi = selected.size();
+        std::vector<int32_t> prefix;
+        while (lo < hi) {
+          const size_t mid = (lo + hi + 1) / 2;
+          prefix.assign(selected.begin(), selected.begin() + mid);
+          close_selection(s, m, prefix, plan);
+          if (plan.triangles <= o.max_triangles) lo = mid;
+          else hi = mid - 1;
+        }
+        if (lo == 0) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
+        selected.resize(lo);
+        std::sort(selected.begin(), selected.end());
+        close_selection(s, m, selected, plan);
+      }
+      if (cancelled()) { stats.stopped_by = "cancelled"; break; }
+      progress(level, "refine", 0.0);
+      ls.faces_selected = int64_t(selected.size());
+      adaptive_level(s, m, plan, ls);
+      if (clamped) { stats.budget_clamped = true; stats.stopped_by = "budget"; }
+    }
+    ++levels_done;
+    const AngleSummary after = summarize_angles(m, s.ct, nullptr, ls.threshold, crease, s.threads);
+    ls.triangles_after = m.num_faces();
+    ls.mean_theta_after = after.mean;
+    ls.max_theta_after = after.max;
+    ls.ms = now() - lt0;
+    stats.levels.push_back(ls);
+    progress(level, "refine", 1.0);
+    if (stats.stopped_by == "budget") break;
+  }
+  if (stats.stopped_by == "max_levels" && o.mode == Mode::kFixed && levels_done < o.levels) stats.stopped_by = "converged";
+
+  if (levels_done > 0) {
+    recompute_normals(m);
+    orthogonalise_tangents(m);
+  }
+  stats.ms_refine = now() - t1;
+  stats.after = summarize_angles(m, s.ct, nullptr, stats.threshold, crease, s.threads);
+  stats.quality_after = triangle_quality(m);
+  stats.triangles_out = m.num_faces();
+  stats.vertices_out = m.wedge_count();
+  stats.uniform_triangles = stats.triangles_in;
+  for (int i = 0; i < levels_done; ++i) stats.uniform_triangles *= 4;
+  stats.reduction_percent = stats.uniform_triangles > 0
+                                ? 100.0 * (1.0 - double(stats.triangles_out) / double(stats.uniform_triangles))
+                                : 0.0;
+  stats.peak_bytes = s.peak;
+  return stats.stopped_by == "cancelled" ? RefineResult::kCancelled : RefineResult::kOk;
+}
+
+}  // namespace iteas

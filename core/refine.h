@@ -1,0 +1,71 @@
+// The IteAS iteration driver (SPEC §2): angles -> threshold -> selection ->
+// red-green closure -> Butterfly refinement, level after level.
+//
+// Each level is split OpenSubdiv-style into a topology pass (which edges split,
+// new connectivity, parent->child maps) and a data pass that applies stencil
+// weights computed on the *old* level to positions, morph deltas and wedges.
+// Old vertices never move. The data pass runs on all threads; results are
+// bit-identical for any thread count.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "core/angles.h"
+#include "core/corner_table.h"
+#include "core/mesh.h"
+#include "core/options.h"
+
+namespace iteas {
+
+struct LevelStats {
+  int level = 0;
+  double threshold = 0;
+  int64_t faces_selected = 0;
+  int64_t red_splits = 0;     // faces split 1 -> 4
+  int64_t green_splits = 0;   // faces bisected to close a crack
+  int64_t greens_merged = 0;  // green pairs merged back into their parent
+  int64_t vertices_added = 0;
+  int64_t triangles_after = 0;
+  double mean_theta_after = 0, max_theta_after = 0;
+  double ms = 0;
+};
+
+struct RefineStats {
+  int64_t triangles_in = 0, vertices_in = 0, triangles_out = 0, vertices_out = 0;
+  double threshold = 0;            // T of the first level
+  std::vector<LevelStats> levels;  // one row per level performed
+  std::string stopped_by;          // converged | max_levels | budget | cancelled
+  AngleSummary before, after;      // "above" counts edges above T
+  QualitySummary quality_before, quality_after;
+  int64_t uniform_triangles = 0;   // uniform subdivision to the same level
+  double reduction_percent = 0;    // 100 (1 - triangles_out / uniform_triangles)
+  TopologyReport topology;
+  bool budget_clamped = false;
+  int64_t peak_bytes = 0;          // peak bytes of the core's mesh structures
+  double ms_topology = 0, ms_refine = 0;
+};
+
+struct RefineHooks {
+  // Injected clock in milliseconds (the core reads no clock itself); may be empty.
+  std::function<double()> now_ms;
+  // Called per level and phase ("analyse", "refine"), fraction in [0, 1].
+  std::function<void(int level, const char* phase, double fraction)> progress;
+  // Honoured between phases.
+  const std::atomic<bool>* cancel = nullptr;
+  // Testing: refine uniform levels with the general adaptive path.
+  bool force_adaptive_path = false;
+};
+
+enum class RefineResult { kOk, kCancelled };
+
+RefineResult refine_mesh(Mesh& mesh, const RefineOptions& options, const RefineHooks& hooks,
+                         RefineStats* stats);
+
+// Bytes held by the mesh's arrays (capacity), for the memory statistics.
+int64_t mesh_bytes(const Mesh& mesh);
+
+}  // namespace iteas

@@ -1,0 +1,349 @@
+// Raw Draco (.drc), OBJ and PLY (read through Draco's decoders), OFF and STL
+// (small parsers of our own, limits checked before allocating), and the
+// .drc / .obj / .ply writers.
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <sstream>
+#include <unordered_map>
+
+#include <draco/io/obj_decoder.h>
+#include <draco/io/ply_decoder.h>
+#include <draco/mesh/mesh.h>
+
+#include "io/document.h"
+#include "io/draco_codec.h"
+
+namespace iteas {
+namespace {
+
+Status bad(const std::string& code, const std::string& msg) { return Status::Error(ErrorKind::kBadInput, code, msg); }
+
+// A flat triangle soup with per-point attributes, welded into one MeshSlot.
+Status slot_from_geometry(DecodedGeometry& g, const std::string& name, Document* doc) {
+  const DecodedAttribute* pos = nullptr;
+  for (const DecodedAttribute& a : g.attributes)
+    if (a.semantic == "POSITION") pos = &a;
+  if (!pos || pos->components != 3) return bad("no_positions", "the mesh has no 3D positions");
+  for (float x : pos->data)
+    if (!std::isfinite(x)) return Status::Error(ErrorKind::kUnusable, "non_finite_positions", "the mesh has non-finite vertex positions");
+  MeshSlot slot;
+  slot.name = name;
+  Mesh& m = slot.mesh;
+  for (const DecodedAttribute& a : g.attributes) {
+    if (a.semantic == "POSITION") continue;
+    Channel ch;
+    ch.name = a.semantic;
+    ch.components = a.components;
+    ch.kind = a.semantic == "NORMAL" ? ChannelKind::kNormal : ChannelKind::kLinear;
+    m.channels.push_back(std::move(ch));
+  }
+  struct Key { uint32_t b[3]; bool operator==(const Key& o) const { return std::memcmp(b, o.b, 12) == 0; } };
+  struct Hash { size_t operator()(const Key& k) const { return (size_t(k.b[0]) * 73856093u) ^ (size_t(k.b[1]) * 19349663u) ^ (size_t(k.b[2]) * 83492791u); } };
+  std::unordered_map<Key, int32_t, Hash> weld;
+  std::vector<int32_t> wedge(size_t(g.points), -1);
+  for (size_t i = 0; i < g.faces.size(); ++i) {
+    const int32_t p = g.faces[i];
+    if (wedge[p] < 0) {
+      Key key;
+      for (int k = 0; k < 3; ++k) {
+        float x = pos->data[3 * size_t(p) + k];
+        if (x == 0.0f) x = 0.0f;
+        std::memcpy(&key.b[k], &x, 4);
+      }
+      auto [it, inserted] = weld.emplace(key, m.num_vertices());
+      if (inserted) for (int k = 0; k < 3; ++k) m.positions.push_back(pos->data[3 * size_t(p) + k]);
+      const int32_t w = m.add_wedge(it->second);
+      size_t ci = 0;
+      for (const DecodedAttribute& a : g.attributes) {
+        if (a.semantic == "POSITION") continue;
+        Channel& ch = m.channels[ci++];
+        for (int k = 0; k < ch.components; ++k) ch.data[size_t(w) * ch.components + k] = a.data[size_t(p) * a.components + k];
+      }
+      wedge[p] = w;
+    }
+    m.corner_vertex.push_back(m.wedge_vertex[wedge[p]]);
+    m.corner_wedge.push_back(wedge[p]);
+    if (i % 3 == 2) m.face_group.push_back(0);
+  }
+  GroupInfo gi;
+  gi.gltf_primitive = 0;
+  gi.has_channel.assign(m.channels.size(), 1);
+  slot.groups.push_back(gi);
+  slot.input_primitives = 1;
+  slot.input_triangles = int64_t(g.faces.size() / 3);
+  slot.input_vertices = g.points;
+  slot.welded_vertices = m.num_vertices();
+  doc->meshes.push_back(std::move(slot));
+  return Status::Ok();
+}
+
+Status from_draco_mesh(const draco::Mesh& dm, const ReadLimits& limits, DecodedGeometry* g) {
+  if (int64_t(dm.num_points()) > limits.max_vertices || int64_t(dm.num_faces()) > limits.max_triangles)
+    return Status::Error(ErrorKind::kTooLarge, "too_large", "the mesh exceeds the vertex or triangle limit");
+  // Re-encode-free path: convert through the same reader as .drc payloads.
+  g->points = dm.num_points();
+  g->faces.resize(size_t(dm.num_faces()) * 3);
+  for (uint32_t f = 0; f < dm.num_faces(); ++f)
+    for (int k = 0; k < 3; ++k) g->faces[3 * size_t(f) + k] = int32_t(dm.face(draco::FaceIndex(f))[k].value());
+  int tex = 0, color = 0;
+  for (int i = 0; i < dm.num_attributes(); ++i) {
+    const draco::PointAttribute* att = dm.attribute(i);
+    std::string sem;
+    switch (att->attribute_type()) {
+      case draco::GeometryAttribute::POSITION: sem = "POSITION"; break;
+      case draco::GeometryAttribute::NORMAL: sem = "NORMAL"; break;
+      case draco::GeometryAttribute::TEX_COORD: sem = "TEXCOORD_" + std::to_string(tex++); break;
+      case draco::GeometryAttribute::COLOR: sem = "COLOR_" + std::to_string(color++); break;
+      default: continue;  // generic attributes (material ids, ...) are not geometry
+    }
+    const int comps = att->num_components();
+    if (comps < 1 || comps > 4) continue;
+    DecodedAttribute a{sem, comps, std::vector<float>(size_t(g->points) * comps)};
+    float tmp[4];
+    for (uint32_t p = 0; p < dm.num_points(); ++p) {
+      att->ConvertValue<float>(att->mapped_index(draco::PointIndex(p)), int8_t(comps), tmp);
+      std::copy(tmp, tmp + comps, &a.data[size_t(p) * comps]);
+    }
+    if (sem.rfind("COLOR_", 0) == 0 && att->normalized() == false && att->data_type() == draco::DT_UINT8)
+      for (float& x : a.data) x /= 255.0f;
+    g->attributes.push_back(std::move(a));
+  }
+  return Status::Ok();
+}
+
+// Whitespace tokenizer over untrusted text.
+struct Tokens {
+  const char* p;
+  const char* end;
+  bool next(std::string* out) {
+    while (p < end) {
+      if (*p == '#') { while (p < end && *p != '\n') ++p; continue; }
+      if (std::isspace(static_cast<unsigned char>(*p))) { ++p; continue; }
+      break;
+    }
+    if (p >= end) return false;
+    const char* s = p;
+    while (p < end && !std::isspace(static_cast<unsigned char>(*p)) && *p != '#') ++p;
+    out->assign(s, p);
+    return true;
+  }
+  bool number(double* v) {
+    std::string t;
+    if (!next(&t)) return false;
+    char* e = nullptr;
+    *v = std::strtod(t.c_str(), &e);
+    return e == t.c_str() + t.size() && !t.empty();
+  }
+  bool integer(int64_t* v) {
+    std::string t;
+    if (!next(&t)) return false;
+    char* e = nullptr;
+    *v = std::strtoll(t.c_str(), &e, 10);
+    return e == t.c_str() + t.size() && !t.empty();
+  }
+};
+
+Status read_off(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
+  Tokens t{reinterpret_cast<const char*>(data), reinterpret_cast<const char*>(data) + size};
+  std::string head;
+  if (!t.next(&head) || head != "OFF") return bad("bad_off", "OFF header missing");
+  int64_t nv, nf, ne;
+  if (!t.integer(&nv) || !t.integer(&nf) || !t.integer(&ne) || nv < 0 || nf < 0)
+    return bad("bad_off", "OFF counts missing or negative");
+  // Every vertex needs at least 6 bytes of text and every face 8: check first.
+  if (nv > limits.max_vertices || nf > limits.max_triangles || nv * 6 > int64_t(size) || nf * 8 > int64_t(size))
+    return Status::Error(ErrorKind::kTooLarge, "too_large", "OFF declares more vertices or faces than it holds");
+  DecodedAttribute pos{"POSITION", 3, std::vector<float>(size_t(nv) * 3)};
+  for (int64_t i = 0; i < 3 * nv; ++i) {
+    double v;
+    if (!t.number(&v)) return bad("bad_off", "OFF vertex " + std::to_string(i / 3) + " is malformed");
+    pos.data[size_t(i)] = float(v);
+  }
+  for (int64_t f = 0; f < nf; ++f) {
+    int64_t n;
+    if (!t.integer(&n) || n < 3 || n > 1024) return bad("bad_off", "OFF face " + std::to_string(f) + " is malformed");
+    int64_t first = 0, prev = 0;
+    for (int64_t k = 0; k < n; ++k) {
+      int64_t idx;
+      if (!t.integer(&idx) || idx < 0 || idx >= nv) return bad("index_out_of_range", "OFF face " + std::to_string(f) + " has a bad index");
+      if (k == 0) first = idx;
+      else if (k >= 2) g->faces.insert(g->faces.end(), {int32_t(first), int32_t(prev), int32_t(idx)});
+      prev = idx;
+    }
+    // Anything else on the face line (colours) is skipped by the next count read
+    // only if numeric; we stop at the line end instead.
+    while (t.p < t.end && *t.p != '\n') ++t.p;
+    if (int64_t(g->faces.size() / 3) > limits.max_triangles)
+      return Status::Error(ErrorKind::kTooLarge, "too_large", "OFF has too many triangles");
+  }
+  g->points = nv;
+  g->attributes.push_back(std::move(pos));
+  return Status::Ok();
+}
+
+Status read_stl(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
+  DecodedAttribute pos{"POSITION", 3, {}};
+  bool binary = false;
+  if (size >= 84) {
+    uint32_t n;
+    std::memcpy(&n, data + 80, 4);
+    binary = uint64_t(84) + uint64_t(n) * 50 == size;
+  }
+  if (binary) {
+    uint32_t n;
+    std::memcpy(&n, data + 80, 4);
+    if (int64_t(n) > limits.max_triangles) return Status::Error(ErrorKind::kTooLarge, "too_large", "STL has too many triangles");
+    pos.data.resize(size_t(n) * 9);
+    for (uint32_t f = 0; f < n; ++f) std::memcpy(&pos.data[size_t(f) * 9], data + 84 + size_t(f) * 50 + 12, 36);
+  } else {
+    Tokens t{reinterpret_cast<const char*>(data), reinterpret_cast<const char*>(data) + size};
+    std::string tok;
+    if (!t.next(&tok) || tok != "solid") return bad("bad_stl", "neither binary STL nor ASCII 'solid'");
+    while (t.next(&tok)) {
+      if (tok != "vertex") continue;
+      for (int k = 0; k < 3; ++k) {
+        double v;
+        if (!t.number(&v)) return bad("bad_stl", "STL vertex is malformed");
+        pos.data.push_back(float(v));
+      }
+      if (int64_t(pos.data.size() / 9) > limits.max_triangles) return Status::Error(ErrorKind::kTooLarge, "too_large", "STL has too many triangles");
+    }
+    pos.data.resize(pos.data.size() / 9 * 9);
+  }
+  g->points = int64_t(pos.data.size() / 3);
+  g->faces.resize(size_t(g->points));
+  for (int64_t i = 0; i < g->points; ++i) g->faces[size_t(i)] = int32_t(i);
+  g->attributes.push_back(std::move(pos));
+  return Status::Ok();
+}
+
+// Writers take the whole document as one mesh (all slots appended).
+struct Flat {
+  std::vector<float> pos;      // per wedge
+  std::vector<float> normal;   // per wedge, may be empty
+  std::vector<float> uv;       // per wedge, may be empty
+  std::vector<int32_t> faces;  // wedge indices
+};
+
+Flat flatten(const Document& doc) {
+  Flat f;
+  bool all_normals = !doc.meshes.empty(), all_uv = !doc.meshes.empty();
+  for (const MeshSlot& s : doc.meshes) {
+    all_normals = all_normals && s.mesh.find_channel("NORMAL") >= 0;
+    all_uv = all_uv && s.mesh.find_channel("TEXCOORD_0") >= 0;
+  }
+  for (const MeshSlot& s : doc.meshes) {
+    const Mesh& m = s.mesh;
+    const int32_t base = int32_t(f.pos.size() / 3), nw = m.wedge_count();
+    const int ni = m.find_channel("NORMAL"), ti = m.find_channel("TEXCOORD_0");
+    for (int32_t w = 0; w < nw; ++w) {
+      const int32_t v = m.has_wedges() ? m.wedge_vertex[w] : w;
+      for (int k = 0; k < 3; ++k) f.pos.push_back(m.positions[3 * size_t(v) + k]);
+      if (all_normals) for (int k = 0; k < 3; ++k) f.normal.push_back(m.channels[ni].data[3 * size_t(w) + k]);
+      if (all_uv) for (int k = 0; k < 2; ++k) f.uv.push_back(m.channels[ti].data[size_t(w) * m.channels[ti].components + k]);
+    }
+    for (int32_t c = 0; c < int32_t(m.corner_vertex.size()); ++c) f.faces.push_back(base + m.wedge_of(c));
+  }
+  return f;
+}
+
+}  // namespace
+
+Status read_classic(const uint8_t* data, size_t size, const std::string& format, const ReadLimits& limits, Document* doc) {
+  DecodedGeometry g;
+  Status s;
+  if (format == "drc") {
+    s = draco_decode(data, size, nullptr, limits, &g);
+  } else if (format == "off") {
+    s = read_off(data, size, limits, &g);
+  } else if (format == "stl") {
+    s = read_stl(data, size, limits, &g);
+  } else if (format == "obj" || format == "ply") {
+    draco::DecoderBuffer buffer;
+    buffer.Init(reinterpret_cast<const char*>(data), size);
+    draco::Mesh dm;
+    draco::Status ds = format == "obj" ? draco::ObjDecoder().DecodeFromBuffer(&buffer, &dm)
+                                       : draco::PlyDecoder().DecodeFromBuffer(&buffer, &dm);
+    if (!ds.ok()) return bad("bad_" + format, format + " does not parse: " + ds.error_msg_string());
+    s = from_draco_mesh(dm, limits, &g);
+  } else {
+    return Status::Error(ErrorKind::kUnsupported, "unsupported_format", "unknown input format");
+  }
+  if (!s.ok()) return s;
+  for (int32_t i : g.faces)
+    if (i < 0 || int64_t(i) >= g.points) return bad("index_out_of_range", "a face references a missing vertex");
+  return slot_from_geometry(g, "mesh", doc);
+}
+
+Status write_classic(const Document& doc, const OutputOptions& opt, const std::string& format, std::vector<uint8_t>* out,
+                     WriteCounts* counts) {
+  const Flat f = flatten(doc);
+  const int64_t nw = int64_t(f.pos.size() / 3), nf = int64_t(f.faces.size() / 3);
+  out->clear();
+  counts->meshes = 1;
+  counts->primitives = 1;
+  counts->vertices = nw;
+  counts->triangles = nf;
+  if (format == "drc") {
+    EncodeRequest req;
+    req.points = nw;
+    req.faces = &f.faces;
+    req.attributes.push_back({"POSITION", 3, f.pos.data(), false});
+    if (!f.normal.empty()) req.attributes.push_back({"NORMAL", 3, f.normal.data(), false});
+    if (!f.uv.empty()) req.attributes.push_back({"TEXCOORD_0", 2, f.uv.data(), false});
+    EncodeResult enc;
+    Status s = draco_encode(req, opt, &enc);
+    if (!s.ok()) return s;
+    *out = std::move(enc.bytes);
+    counts->vertices = enc.points;
+    counts->triangles = enc.faces;
+    counts->quantization_collapsed = nf - enc.faces;
+    return Status::Ok();
+  }
+  if (format == "obj") {
+    std::ostringstream o;
+    o.precision(9);
+    o << "# written by IteAS\n";
+    for (int64_t i = 0; i < nw; ++i) o << "v " << f.pos[3 * i] << ' ' << f.pos[3 * i + 1] << ' ' << f.pos[3 * i + 2] << '\n';
+    for (size_t i = 0; i < f.uv.size() / 2; ++i) o << "vt " << f.uv[2 * i] << ' ' << f.uv[2 * i + 1] << '\n';
+    for (size_t i = 0; i < f.normal.size() / 3; ++i)
+      o << "vn " << f.normal[3 * i] << ' ' << f.normal[3 * i + 1] << ' ' << f.normal[3 * i + 2] << '\n';
+    for (int64_t t = 0; t < nf; ++t) {
+      o << 'f';
+      for (int k = 0; k < 3; ++k) {
+        const int64_t i = f.faces[3 * t + k] + 1;
+        o << ' ' << i;
+        if (!f.uv.empty() || !f.normal.empty()) o << '/' << (f.uv.empty() ? "" : std::to_string(i));
+        if (!f.normal.empty()) o << '/' << i;
+      }
+      o << '\n';
+    }
+    const std::string s = o.str();
+    out->assign(s.begin(), s.end());
+    return Status::Ok();
+  }
+  if (format == "ply") {
+    std::ostringstream h;
+    h << "ply\nformat binary_little_endian 1.0\ncomment written by IteAS\nelement vertex " << nw
+      << "\nproperty float x\nproperty float y\nproperty float z\n";
+    if (!f.normal.empty()) h << "property float nx\nproperty float ny\nproperty float nz\n";
+    h << "element face " << nf << "\nproperty list uchar int vertex_indices\nend_header\n";
+    const std::string hs = h.str();
+    out->assign(hs.begin(), hs.end());
+    auto put = [&](const void* p, size_t n) { out->insert(out->end(), static_cast<const uint8_t*>(p), static_cast<const uint8_t*>(p) + n); };
+    for (int64_t i = 0; i < nw; ++i) {
+      put(&f.pos[3 * i], 12);
+      if (!f.normal.empty()) put(&f.normal[3 * i], 12);
+    }
+    for (int64_t t = 0; t < nf; ++t) {
+      const uint8_t three = 3;
+      put(&three, 1);
+      put(&f.faces[3 * t], 12);
+    }
+    return Status::Ok();
+  }
+  return Status::Error(ErrorKind::kUnsupported, "unsupported_format", "unknown output format " + format);
+}
+
+}  // namespace iteas

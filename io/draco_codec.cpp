@@ -1,0 +1,192 @@
+#include "io/draco_codec.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include <draco/compression/decode.h>
+#include <draco/compression/expert_encode.h>
+#include <draco/mesh/mesh.h>
+
+namespace iteas {
+namespace {
+
+std::string semantic_of(const draco::PointAttribute& att, int* tex, int* color, int* generic) {
+  switch (att.attribute_type()) {
+    case draco::GeometryAttribute::POSITION: return "POSITION";
+    case draco::GeometryAttribute::NORMAL: return "NORMAL";
+    case draco::GeometryAttribute::TEX_COORD: return "TEXCOORD_" + std::to_string((*tex)++);
+    case draco::GeometryAttribute::COLOR: return "COLOR_" + std::to_string((*color)++);
+    default: return "_GENERIC_" + std::to_string((*generic)++);
+  }
+}
+
+Status read_attribute(const draco::PointAttribute& att, int64_t points, const std::string& semantic,
+                      DecodedAttribute* out) {
+  const int comps = att.num_components();
+  if (comps < 1 || comps > 4)
+    return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco attribute " + semantic + " has " +
+                                                               std::to_string(comps) + " components");
+  out->semantic = semantic;
+  out->components = comps;
+  out->data.assign(size_t(points) * comps, 0.0f);
+  float tmp[4];
+  for (int64_t p = 0; p < points; ++p) {
+    const draco::AttributeValueIndex avi = att.mapped_index(draco::PointIndex(uint32_t(p)));
+    if (avi.value() >= att.size())
+      return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco attribute value index out of range");
+    if (!att.ConvertValue<float>(avi, static_cast<int8_t>(comps), tmp))
+      return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco attribute " + semantic + " unreadable");
+    for (int k = 0; k < comps; ++k) out->data[size_t(p) * comps + k] = tmp[k];
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+Status draco_decode(const uint8_t* data, size_t size, const std::map<std::string, int>* semantic_ids,
+                    const ReadLimits& limits, DecodedGeometry* out) {
+  draco::DecoderBuffer buffer;
+  buffer.Init(reinterpret_cast<const char*>(data), size);
+  auto type = draco::Decoder::GetEncodedGeometryType(&buffer);
+  if (!type.ok())
+    return Status::Error(ErrorKind::kBadInput, "bad_draco", "not a Draco payload: " + type.status().error_msg_string());
+  if (type.value() != draco::TRIANGULAR_MESH)
+    return Status::Error(ErrorKind::kUnusable, "no_triangles", "Draco payload is a point cloud: no triangles");
+  draco::Decoder decoder;
+  auto decoded = decoder.DecodeMeshFromBuffer(&buffer);
+  if (!decoded.ok())
+    return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco decode failed: " + decoded.status().error_msg_string());
+  const std::unique_ptr<draco::Mesh>& dm = decoded.value();
+  const int64_t points = dm->num_points(), faces = dm->num_faces();
+  if (points > limits.max_vertices || faces > limits.max_triangles)
+    return Status::Error(ErrorKind::kTooLarge, "too_large", "Draco payload exceeds the vertex or triangle limit");
+  out->points = points;
+  out->faces.resize(size_t(faces) * 3);
+  for (int64_t f = 0; f < faces; ++f) {
+    const draco::Mesh::Face& face = dm->face(draco::FaceIndex(uint32_t(f)));
+    for (int k = 0; k < 3; ++k) {
+      const uint32_t p = face[k].value();
+      if (p >= uint64_t(points))
+        return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco face references a missing point");
+      out->faces[size_t(f) * 3 + k] = int32_t(p);
+    }
+  }
+  out->attributes.clear();
+  if (semantic_ids) {
+    for (const auto& [semantic, uid] : *semantic_ids) {
+      if (uid < 0)
+        return Status::Error(ErrorKind::kBadInput, "bad_draco", "Draco extension attribute id is negative");
+      const draco::PointAttribute* att = dm->GetAttributeByUniqueId(uint32_t(uid));
+      if (!att)
+        return Status::Error(ErrorKind::kBadInput, "bad_draco",
+                             "Draco extension names attribute id " + std::to_string(uid) + " for " + semantic +
+                                 ", which the payload does not have");
+      DecodedAttribute a;
+      Status s = read_attribute(*att, points, semantic, &a);
+      if (!s.ok()) return s;
+      out->attributes.push_back(std::move(a));
+    }
+  } else {
+    int tex = 0, color = 0, generic = 0;
+    for (int i = 0; i < dm->num_attributes(); ++i) {
+      const draco::PointAttribute* att = dm->attribute(i);
+      DecodedAttribute a;
+      Status s = read_attribute(*att, points, semantic_of(*att, &tex, &color, &generic), &a);
+      if (!s.ok()) return s;
+      out->attributes.push_back(std::move(a));
+    }
+  }
+  return Status::Ok();
+}
+
+Status draco_encode(const EncodeRequest& req, const OutputOptions& options, EncodeResult* out) {
+  draco::Mesh dm;
+  const int64_t points = req.points;
+  const int64_t faces = int64_t(req.faces->size() / 3);
+  dm.set_num_points(uint32_t(points));
+  dm.SetNumFaces(size_t(faces));
+  for (int64_t f = 0; f < faces; ++f) {
+    draco::Mesh::Face face;
+    for (int k = 0; k < 3; ++k) face[k] = draco::PointIndex(uint32_t((*req.faces)[size_t(f) * 3 + k]));
+    dm.SetFace(draco::FaceIndex(uint32_t(f)), face);
+  }
+  std::vector<int> ids;
+  for (const EncodeAttribute& a : req.attributes) {
+    draco::GeometryAttribute::Type type = draco::GeometryAttribute::GENERIC;
+    if (a.semantic == "POSITION") type = draco::GeometryAttribute::POSITION;
+    else if (a.semantic == "NORMAL") type = draco::GeometryAttribute::NORMAL;
+    else if (a.semantic.rfind("TEXCOORD_", 0) == 0) type = draco::GeometryAttribute::TEX_COORD;
+    else if (a.semantic.rfind("COLOR_", 0) == 0) type = draco::GeometryAttribute::COLOR;
+    draco::GeometryAttribute ga;
+    const draco::DataType dt = a.integer ? draco::DT_UINT16 : draco::DT_FLOAT32;
+    const int elem = a.integer ? 2 : 4;
+    ga.Init(type, nullptr, uint8_t(a.components), dt, false, int64_t(elem) * a.components, 0);
+    const int id = dm.AddAttribute(ga, true, uint32_t(points));
+    if (id < 0) return Status::Error(ErrorKind::kBadInput, "encode_failed", "Draco rejected attribute " + a.semantic);
+    draco::PointAttribute* att = dm.attribute(id);
+    att->set_unique_id(uint32_t(id));
+    std::vector<uint16_t> ivals(a.components);
+    for (int64_t p = 0; p < points; ++p) {
+      const float* src = a.data + size_t(p) * a.components;
+      if (a.integer) {
+        for (int k = 0; k < a.components; ++k) ivals[k] = uint16_t(std::clamp(src[k], 0.0f, 65535.0f));
+        att->SetAttributeValue(draco::AttributeValueIndex(uint32_t(p)), ivals.data());
+      } else {
+        att->SetAttributeValue(draco::AttributeValueIndex(uint32_t(p)), src);
+      }
+    }
+    ids.push_back(id);
+    out->unique_ids[a.semantic] = id;
+  }
+  draco::ExpertEncoder encoder(dm);
+  const int speed = 10 - std::clamp(options.draco_level, 0, 10);
+  encoder.SetSpeedOptions(speed, speed);
+  encoder.SetTrackEncodedProperties(true);
+  for (size_t i = 0; i < req.attributes.size(); ++i) {
+    const EncodeAttribute& a = req.attributes[i];
+    if (a.integer) continue;  // JOINTS stay exact
+    if (a.semantic == "POSITION") {
+      if (req.grid_origin && req.grid_range > 0)
+        encoder.SetAttributeExplicitQuantization(ids[i], options.position_bits, 3, req.grid_origin, req.grid_range);
+      else
+        encoder.SetAttributeQuantization(ids[i], options.position_bits);
+    } else if (a.semantic == "NORMAL") {
+      encoder.SetAttributeQuantization(ids[i], options.normal_bits);
+    } else if (a.semantic.rfind("TEXCOORD_", 0) == 0) {
+      encoder.SetAttributeQuantization(ids[i], options.texcoord_bits);
+    } else if (a.semantic.rfind("COLOR_", 0) == 0) {
+      encoder.SetAttributeQuantization(ids[i], options.color_bits);
+    } else {
+      encoder.SetAttributeQuantization(ids[i], options.generic_bits);
+    }
+  }
+  draco::EncoderBuffer buffer;
+  const draco::Status st = encoder.EncodeToBuffer(&buffer);
+  if (!st.ok()) return Status::Error(ErrorKind::kBadInput, "encode_failed", "Draco encode failed: " + st.error_msg_string());
+  out->bytes.assign(buffer.data(), buffer.data() + buffer.size());
+  out->points = int64_t(encoder.num_encoded_points());
+  out->faces = int64_t(encoder.num_encoded_faces());
+
+  // Accessor min/max must describe the decoded (dequantised) positions.
+  DecodedGeometry check;
+  std::map<std::string, int> pos_only;
+  if (out->unique_ids.count("POSITION")) pos_only["POSITION"] = out->unique_ids["POSITION"];
+  ReadLimits unlimited;
+  unlimited.max_vertices = unlimited.max_triangles = INT64_MAX;
+  Status s = draco_decode(out->bytes.data(), out->bytes.size(), &pos_only, unlimited, &check);
+  if (!s.ok()) return s;
+  if (check.points != out->points || int64_t(check.faces.size() / 3) != out->faces)
+    return Status::Error(ErrorKind::kBadInput, "encode_failed", "Draco payload counts differ from the encoder's");
+  if (!check.attributes.empty() && check.points > 0) {
+    const std::vector<float>& p = check.attributes[0].data;
+    for (int k = 0; k < 3; ++k) out->pos_min[k] = out->pos_max[k] = p[k];
+    for (int64_t i = 1; i < check.points; ++i)
+      for (int k = 0; k < 3; ++k) {
+        out->pos_min[k] = std::min(out->pos_min[k], p[3 * size_t(i) + k]);
+        out->pos_max[k] = std::max(out->pos_max[k], p[3 * size_t(i) + k]);
+      }
+  }
+  return Status::Ok();
+}
+
+}  // namespace iteas

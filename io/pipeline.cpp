@@ -1,0 +1,126 @@
+#include "io/pipeline.h"
+
+#include <cmath>
+
+#include "core/angles.h"
+#include "core/corner_table.h"
+
+namespace iteas {
+
+Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
+  auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };
+  const double t0 = now();
+  std::string format = rq.input_format.empty() ? sniff_format(rq.data, rq.size, rq.name_hint) : rq.input_format;
+  if (format.empty())
+    return Status::Error(ErrorKind::kUnsupported, "unsupported_format",
+                         "unrecognised input format (expected glb, gltf, drc, obj, ply, off or stl)");
+  Document doc;
+  Status s = read_document(rq.data, rq.size, format, rq.limits, &doc);
+  if (!s.ok()) return s;
+  const double t_decoded = now();
+
+  std::vector<RefineStats> per_mesh(doc.meshes.size());
+  double ms_topology = 0, ms_refine = 0;
+  if (rq.refine) {
+    for (size_t i = 0; i < doc.meshes.size(); ++i) {
+      RefineHooks rh;
+      rh.now_ms = hooks.now_ms;
+      rh.progress = hooks.progress;
+      rh.cancel = hooks.cancel;
+      const RefineResult r = refine_mesh(doc.meshes[i].mesh, rq.options.refine, rh, &per_mesh[i]);
+      ms_topology += per_mesh[i].ms_topology;
+      ms_refine += per_mesh[i].ms_refine;
+      if (r == RefineResult::kCancelled) {
+        result->cancelled = true;
+        return Status::Ok();
+      }
+    }
+  } else {
+    per_mesh.clear();
+  }
+  const double t_refined = now();
+  if (hooks.progress) hooks.progress(0, "encode", 0.0);
+
+  WriteCounts counts;
+  const std::string out_format = rq.output_format.empty() ? "glb" : rq.output_format;
+  auto make_stats = [&](const WriteCounts& c) { return stats_json(doc, per_mesh, rq.options, out_format, c, rq.refine); };
+  s = write_document(doc, rq.options.out, out_format, make_stats, &result->bytes, &counts);
+  if (!s.ok()) return s;
+  const double t_encoded = now();
+  result->stats = make_stats(counts);
+  result->stats["output"]["bytes"] = int64_t(result->bytes.size());
+  auto r3 = [](double x) { return std::round(x * 1000.0) / 1000.0; };
+  result->stats["timings_ms"] = {{"decode", r3(t_decoded - t0)},   {"topology", r3(ms_topology)},
+                                 {"refine", r3(ms_refine)},         {"encode", r3(t_encoded - t_refined)},
+                                 {"total", r3(t_encoded - t0)}};
+  return Status::Ok();
+}
+
+Status inspect(const uint8_t* data, size_t size, const std::string& name_hint, const ReadLimits& limits,
+               nlohmann::json* out) {
+  const std::string format = sniff_format(data, size, name_hint);
+  if (format.empty()) return Status::Error(ErrorKind::kUnsupported, "unsupported_format", "unrecognised input format");
+  Document doc;
+  Status s = read_document(data, size, format, limits, &doc);
+  if (!s.ok()) return s;
+  nlohmann::json meshes = nlohmann::json::array();
+  int64_t tris = 0, verts = 0, welded = 0, boundary = 0, cut = 0, dropped = 0, prims = 0;
+  std::vector<int64_t> hist(18, 0);
+  double theta_sum = 0;
+  int64_t theta_edges = 0;
+  for (MeshSlot& slot : doc.meshes) {
+    Mesh m = slot.mesh;
+    CornerTable ct;
+    const TopologyReport rep = ct.build(m, true, 0);
+    std::vector<float> theta;
+    edge_angles(m, ct, theta, 0);
+    const AngleSummary a = summarize_angles(m, ct, &theta, 0, 0, 0);
+    for (int i = 0; i < 18; ++i) hist[i] += a.histogram[i];
+    theta_sum += a.mean * double(a.edges);
+    theta_edges += a.edges;
+    nlohmann::json attrs = nlohmann::json::array({"POSITION"});
+    for (const Channel& ch : slot.mesh.channels) attrs.push_back(ch.name);
+    meshes.push_back({{"index", slot.gltf_mesh >= 0 ? slot.gltf_mesh : 0},
+                      {"name", slot.name},
+                      {"primitives", slot.input_primitives},
+                      {"triangles", slot.input_triangles},
+                      {"vertices", slot.input_vertices},
+                      {"welded_vertices", slot.welded_vertices},
+                      {"boundary_edges", rep.boundary_edges},
+                      {"non_manifold_edges_cut", rep.non_manifold_edges},
+                      {"orientation_conflicts_cut", rep.orientation_conflicts},
+                      {"non_manifold_vertices_split", rep.split_vertices},
+                      {"dropped_faces", slot.dropped_faces},
+                      {"morph_targets", slot.targets},
+                      {"attributes", attrs},
+                      {"mean_theta", std::round(a.mean * 1000) / 1000},
+                      {"max_theta", std::round(a.max * 1000) / 1000}});
+    tris += slot.input_triangles;
+    verts += slot.input_vertices;
+    welded += slot.welded_vertices;
+    boundary += rep.boundary_edges;
+    cut += rep.non_manifold_edges + rep.orientation_conflicts;
+    dropped += slot.dropped_faces;
+    prims += slot.input_primitives;
+  }
+  nlohmann::json histogram = nlohmann::json::array();
+  for (int i = 0; i < 18; ++i) histogram.push_back({{"from", i * 10}, {"to", i * 10 + 10}, {"edges", hist[i]}});
+  *out = {{"format", format},
+          {"bytes", int64_t(size)},
+          {"meshes", int64_t(doc.meshes.size())},
+          {"primitives", prims},
+          {"passthrough_primitives", doc.passthrough_primitives},
+          {"triangles", tris},
+          {"vertices", verts},
+          {"welded_vertices", welded},
+          {"boundary_edges", boundary},
+          {"cut_edges", cut},
+          {"dropped_faces", dropped},
+          {"mean_theta", std::round((theta_edges ? theta_sum / double(theta_edges) : 0) * 1000) / 1000},
+          {"theta_histogram", histogram},
+          {"per_mesh", meshes},
+          {"warnings", doc.warnings}};
+  return Status::Ok();
+}
+
+}  // namespace iteas

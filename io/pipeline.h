@@ -1,0 +1,53 @@
+// The one path every front end takes: decode -> refine each mesh -> encode,
+// with statistics (SPEC §5). The CLI and the HTTP server both call run_job().
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/refine.h"
+#include "io/document.h"
+
+namespace iteas {
+
+struct JobRequest {
+  const uint8_t* data = nullptr;
+  size_t size = 0;
+  std::string name_hint;      // file name (for formats without magic)
+  std::string input_format;   // forced; empty = sniffed
+  std::string output_format;  // glb, gltf, drc, obj, ply
+  Options options;
+  bool refine = true;         // false: convert only
+  ReadLimits limits;
+};
+
+struct JobHooks {
+  std::function<double()> now_ms;  // the caller's clock
+  std::function<void(int level, const char* phase, double fraction)> progress;
+  const std::atomic<bool>* cancel = nullptr;
+};
+
+struct JobResult {
+  std::vector<uint8_t> bytes;
+  nlohmann::json stats;
+  bool cancelled = false;
+};
+
+Status run_job(const JobRequest& request, const JobHooks& hooks, JobResult* result);
+
+// Facts about a file without refining it (iteas inspect).
+Status inspect(const uint8_t* data, size_t size, const std::string& name_hint, const ReadLimits& limits,
+               nlohmann::json* out);
+
+// The statistics document from its parts (io/stats_json.cpp).
+nlohmann::json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, const Options& options,
+                          const std::string& output_format, const WriteCounts& out_counts, bool refined);
+
+nlohmann::json options_json(const Options& options, const std::string& output_format);
+
+}  // namespace iteas

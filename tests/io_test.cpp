@@ -1,0 +1,205 @@
+// Readers and writers on real files, broken files, truncated and corrupted
+// bytes (issue 2, points 2-3). Run under the Asan build too.
+#include <gtest/gtest.h>
+
+#include <random>
+#include <set>
+
+#include "io/pipeline.h"
+#include "tests/support.h"
+
+namespace iteas {
+namespace {
+
+std::set<std::string> attribute_set(const Document& d) {
+  std::set<std::string> s;
+  for (const MeshSlot& slot : d.meshes)
+    for (const Channel& ch : slot.mesh.channels) s.insert(ch.name);
+  return s;
+}
+
+int64_t triangles(const Document& d) {
+  int64_t n = 0;
+  for (const MeshSlot& s : d.meshes) n += s.mesh.num_faces();
+  return n;
+}
+
+TEST(Io, EveryValidMeshRoundTripsThroughGlb) {
+  int converted = 0;
+  for (const std::string& path : test::valid_mesh_files()) {
+    SCOPED_TRACE(path);
+    Document in;
+    const Status s = test::load(path, &in);
+    if (!s.ok()) {
+      // Only point clouds (no triangles) may fail, with the documented code.
+      EXPECT_EQ(s.kind, ErrorKind::kUnusable) << s.message;
+      EXPECT_EQ(s.code, "no_triangles");
+      continue;
+    }
+    for (bool draco : {false, true}) {
+      OutputOptions opt;
+      opt.draco = draco;
+      std::vector<uint8_t> bytes;
+      WriteCounts counts;
+      ASSERT_TRUE(write_document(in, opt, "glb", nullptr, &bytes, &counts).ok());
+      Document out;
+      const Status r = read_document(bytes.data(), bytes.size(), "glb", ReadLimits(), &out);
+      ASSERT_TRUE(r.ok()) << r.message;
+      // Draco may drop triangles that quantization collapses (counted by the
+      // writer) or keep them with two equal points (dropped, and counted, on reading).
+      int64_t dropped = 0;
+      for (const MeshSlot& s : out.meshes) dropped += s.dropped_faces;
+      EXPECT_EQ(triangles(out) + dropped, counts.triangles);
+      if (!draco) EXPECT_EQ(dropped, 0);
+      EXPECT_EQ(counts.triangles + counts.quantization_collapsed, triangles(in));
+      if (!draco) EXPECT_EQ(counts.quantization_collapsed, 0);
+      EXPECT_EQ(attribute_set(out), attribute_set(in));
+      EXPECT_EQ(out.meshes.size(), in.meshes.size());
+    }
+    ++converted;
+  }
+  EXPECT_GT(converted, 20);
+}
+
+TEST(Io, NastyFilesFailCleanlyOrWarn) {
+  for (const std::string& path : test::nasty_files()) {
+    SCOPED_TRACE(path);
+    const std::vector<uint8_t> b = test::read_bytes(path);
+    JobRequest rq;
+    rq.data = b.data();
+    rq.size = b.size();
+    rq.name_hint = path;
+    rq.output_format = "glb";
+    rq.options.refine.levels = 2;
+    JobResult res;
+    const Status s = run_job(rq, JobHooks(), &res);
+    if (!s.ok()) {
+      EXPECT_FALSE(s.message.empty());
+      EXPECT_EQ(s.message.find('\n'), std::string::npos);
+      EXPECT_NE(s.kind, ErrorKind::kIo);
+    } else {
+      EXPECT_FALSE(res.bytes.empty());
+      EXPECT_TRUE(res.stats.contains("warnings"));
+    }
+  }
+}
+
+void expect_no_crash_on_prefixes(const std::string& path, size_t step) {
+  const std::vector<uint8_t> b = test::read_bytes(path);
+  ASSERT_FALSE(b.empty()) << path;
+  const std::string fmt = sniff_format(b.data(), b.size(), path);
+  for (size_t n = 0; n < b.size(); n += step) {
+    std::vector<uint8_t> prefix(b.begin(), b.begin() + n);  // exact-size copy so ASan sees overreads
+    Document d;
+    const Status s = read_document(prefix.data(), prefix.size(), fmt, ReadLimits(), &d);
+    if (!s.ok()) EXPECT_FALSE(s.message.empty());
+  }
+}
+
+TEST(Io, TruncatedGlbPrefixesAreRejectedCleanly) { expect_no_crash_on_prefixes(test::data_dir() + "/Box.glb", 1); }
+TEST(Io, TruncatedDracoGlbPrefixesAreRejectedCleanly) { expect_no_crash_on_prefixes(test::data_dir() + "/Box_Draco.glb", 1); }
+TEST(Io, TruncatedDrcPrefixesAreRejectedCleanly) {
+  expect_no_crash_on_prefixes(test::data_dir() + "/cube_att.drc", 1);
+  expect_no_crash_on_prefixes(test::data_dir() + "/eight.drc", 1);
+}
+
+TEST(Io, BitFlippedInputsDoNotCrash) {
+  std::mt19937 rng(12345);
+  for (const char* name : {"Box.glb", "Box_Draco.glb", "cube_att.drc", "eight.off", "Box.gltf"}) {
+    const std::vector<uint8_t> b = test::read_bytes(test::data_dir() + "/" + name);
+    for (int i = 0; i < 300; ++i) {
+      std::vector<uint8_t> x = b;
+      for (int k = 0; k < 4; ++k) x[rng() % x.size()] ^= uint8_t(1u << (rng() % 8));
+      Document d;
+      read_document(x.data(), x.size(), sniff_format(x.data(), x.size(), name), ReadLimits(), &d);
+    }
+  }
+}
+
+TEST(Io, ExternalUrisAreRefusedWithoutOpeningAnything) {
+  for (const char* uri : {"file:///etc/passwd", "../secret.bin", "http://127.0.0.1:1/x.bin", "/etc/passwd"}) {
+    const std::string json = std::string(R"({"asset":{"version":"2.0"},"buffers":[{"uri":")") + uri +
+                             R"(","byteLength":36}],"bufferViews":[{"buffer":0,"byteLength":36}],)"
+                             R"("accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}],)"
+                             R"("meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}]})";
+    Document d;
+    const Status s = read_document(reinterpret_cast<const uint8_t*>(json.data()), json.size(), "gltf", ReadLimits(), &d);
+    EXPECT_EQ(s.code, "external_uri") << uri;
+    EXPECT_EQ(s.kind, ErrorKind::kBadInput);
+  }
+}
+
+TEST(Io, AbsurdDeclaredCountsAreRefusedBeforeAllocating) {
+  // A sparse accessor without a bufferView may declare any count: the limit holds.
+  const std::string json =
+      R"({"asset":{"version":"2.0"},"accessors":[{"componentType":5126,"count":2147483647,"type":"VEC3",)"
+      R"("min":[0,0,0],"max":[1,1,1]}],"meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}]})";
+  Document d;
+  const Status s = read_document(reinterpret_cast<const uint8_t*>(json.data()), json.size(), "gltf", ReadLimits(), &d);
+  EXPECT_FALSE(s.ok());
+  const std::string off = "OFF\n2000000000 1 0\n0 0 0\n";
+  const Status s2 = read_document(reinterpret_cast<const uint8_t*>(off.data()), off.size(), "off", ReadLimits(), &d);
+  EXPECT_EQ(s2.kind, ErrorKind::kTooLarge);
+}
+
+TEST(Io, SniffsFormats) {
+  for (const auto& [file, fmt] : std::vector<std::pair<std::string, std::string>>{
+           {"Box.glb", "glb"}, {"Box.gltf", "gltf"}, {"cube_att.drc", "drc"}, {"eight.off", "off"}, {"bunny-npm.obj", "obj"}}) {
+    const std::vector<uint8_t> b = test::read_bytes(test::data_dir() + "/" + file);
+    EXPECT_EQ(sniff_format(b.data(), b.size(), ""), fmt) << file;
+  }
+}
+
+TEST(Io, KeepsWhatIsNotTriangleGeometry) {
+  for (const char* name : {"RiggedSimple.glb", "AnimatedMorphCube.glb", "BoxTextured.glb"}) {
+    SCOPED_TRACE(name);
+    Document in;
+    ASSERT_TRUE(test::load(test::data_dir() + "/" + name, &in).ok());
+    std::vector<uint8_t> bytes;
+    ASSERT_TRUE(write_document(in, OutputOptions(), "glb", nullptr, &bytes, nullptr).ok());
+    Document out;
+    ASSERT_TRUE(read_document(bytes.data(), bytes.size(), "glb", ReadLimits(), &out).ok());
+    for (const char* key : {"nodes", "materials", "skins", "animations", "textures", "images", "samplers", "scenes"}) {
+      ASSERT_EQ(in.gltf.contains(key), out.gltf.contains(key)) << key;
+      if (!in.gltf.contains(key)) continue;
+      if (std::string(key) == "images") {
+        EXPECT_EQ(in.gltf[key].size(), out.gltf[key].size());
+        continue;
+      }
+      if (std::string(key) == "skins" || std::string(key) == "animations") {
+        // Accessor indices are renumbered; the structure and counts are kept.
+        EXPECT_EQ(in.gltf[key].size(), out.gltf[key].size());
+        continue;
+      }
+      EXPECT_EQ(in.gltf[key], out.gltf[key]) << key;
+    }
+  }
+}
+
+TEST(Options, ParsesAndNamesBadOptions) {
+  Options o;
+  std::string err, bad;
+  EXPECT_TRUE(parse_options({{"mode", "uniform"}, {"levels", "3"}, {"crease-angle", "40"}}, &o, &err));
+  EXPECT_EQ(o.refine.mode, Mode::kUniform);
+  EXPECT_EQ(o.refine.levels, 3);
+  EXPECT_EQ(o.refine.crease_angle, 40);
+  Options d;
+  EXPECT_TRUE(parse_options({}, &d, &err));
+  EXPECT_EQ(d.refine.levels, 6);
+  EXPECT_TRUE(parse_options({{"mode", "uniform"}}, &d, &err));
+  EXPECT_EQ(d.refine.levels, 2);
+  for (const auto& [k, v] : std::vector<std::pair<std::string, std::string>>{
+           {"levels", "9"}, {"levels", "x"}, {"mode", "loop"}, {"tension", "0.5"}, {"threshold", "p101"},
+           {"position_bits", "7"}, {"bogus", "1"}, {"max_triangles", "-3"}, {"crease_angle", "nan"}}) {
+    Options x;
+    EXPECT_FALSE(parse_options({{k, v}}, &x, &err, &bad)) << k << "=" << v;
+    EXPECT_EQ(bad, k);
+    EXPECT_NE(err.find(k), std::string::npos);
+  }
+  Options f;
+  EXPECT_FALSE(parse_options({{"mode", "fixed"}}, &f, &err, &bad));
+  EXPECT_EQ(bad, "threshold");
+}
+
+}  // namespace
+}  // namespace iteas

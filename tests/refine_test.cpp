@@ -1,0 +1,218 @@
+// Property tests of the refinement on every mesh we have (issue 3, point 2).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstring>
+
+#include "core/corner_table.h"
+#include "core/refine.h"
+#include "tests/support.h"
+
+namespace iteas {
+namespace {
+
+struct Case {
+  std::string name;
+  Mesh mesh;
+};
+
+// Shipped meshes plus the corpus when present; big ones are left to the
+// corpus-wide CLI test to keep this suite quick.
+std::vector<Case> cases(int64_t max_triangles) {
+  std::vector<Case> out;
+  for (const std::string& path : test::valid_mesh_files()) {
+    Document d;
+    if (!test::load(path, &d).ok()) continue;
+    for (MeshSlot& s : d.meshes)
+      if (s.mesh.num_faces() <= max_triangles) out.push_back({path + "#" + std::to_string(&s - d.meshes.data()), s.mesh});
+  }
+  return out;
+}
+
+RefineOptions opts(Mode mode, int levels, int threads = 2) {
+  RefineOptions o;
+  o.mode = mode;
+  o.levels = levels;
+  o.threads = threads;
+  if (mode == Mode::kFixed) { o.threshold.kind = ThresholdSpec::Kind::kDegrees; o.threshold.value = 10; }
+  return o;
+}
+
+Mesh refined(const Mesh& in, const RefineOptions& o, RefineStats* st = nullptr, bool force_adaptive = false) {
+  Mesh m = in;
+  RefineStats local;
+  RefineHooks h;
+  h.force_adaptive_path = force_adaptive;
+  refine_mesh(m, o, h, st ? st : &local);
+  m.materialize();
+  return m;
+}
+
+bool same_mesh(const Mesh& a, const Mesh& b) {
+  return a.positions.size() == b.positions.size() &&
+         std::memcmp(a.positions.data(), b.positions.data(), a.positions.size() * 4) == 0 &&
+         a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group;
+}
+
+// The input as refinement sees it: non-manifold fans split.
+Mesh prepared(const Mesh& in) {
+  Mesh m = in;
+  CornerTable ct;
+  ct.build(m, true, 1);
+  return m;
+}
+
+TEST(Refine, TopologyPropertiesOnEveryMesh) {
+  int n = 0;
+  for (const Case& c : cases(25000)) {
+    const Mesh base = prepared(c.mesh);
+    const test::EdgeFacts raw = test::edge_facts(c.mesh);
+    const test::EdgeFacts in = test::edge_facts(base);
+    const bool manifold = raw.non_manifold == 0 && raw.conflicts == 0;
+    const int64_t chi = test::euler_characteristic(base);
+    for (Mode mode : {Mode::kUniform, Mode::kIteas, Mode::kFixed}) {
+      const int levels = mode == Mode::kUniform ? 2 : 3;
+      RefineStats st;
+      const Mesh out = refined(c.mesh, opts(mode, levels), &st);
+      SCOPED_TRACE(c.name + " mode " + mode_name(mode));
+      const test::EdgeFacts ef = test::edge_facts(out);
+      // No T-junctions: a hanging vertex would open a new boundary loop and
+      // change the Euler characteristic; closed stays closed.
+      if (manifold) {
+        // (Cut edges legitimately separate their faces, so only here.)
+        EXPECT_EQ(test::euler_characteristic(out), chi);
+        EXPECT_EQ(ef.boundary_loops, in.boundary_loops);
+        if (in.boundary_corners == 0) EXPECT_EQ(ef.boundary_corners, 0);
+      }
+      // Old vertices never move.
+      ASSERT_GE(out.positions.size(), base.positions.size());
+      EXPECT_EQ(std::memcmp(out.positions.data(), base.positions.data(), base.positions.size() * 4), 0);
+      EXPECT_EQ(st.triangles_out, out.num_faces());
+      if (mode == Mode::kUniform) EXPECT_EQ(out.num_faces(), base.num_faces() * 16);
+      else EXPECT_LE(out.num_faces(), base.num_faces() * (1 << (2 * levels)));
+    }
+    ++n;
+  }
+  EXPECT_GT(n, 15);
+}
+
+TEST(Refine, AdaptiveWithEverythingSelectedEqualsUniform) {
+  for (const Case& c : cases(8000)) {
+    SCOPED_TRACE(c.name);
+    const test::EdgeFacts raw = test::edge_facts(c.mesh);
+    if (raw.non_manifold || raw.conflicts) continue;  // cut edges: see README (each side refined alone)
+    const Mesh fast = refined(c.mesh, opts(Mode::kUniform, 2));
+    const Mesh general = refined(c.mesh, opts(Mode::kUniform, 2), nullptr, true);
+    EXPECT_TRUE(same_mesh(fast, general));
+    // And the iteas mode with a threshold below every angle selects everything.
+    RefineOptions all = opts(Mode::kFixed, 2);
+    all.threshold.value = -1;
+    if (raw.boundary_corners == 0) {  // every face has interior edges, so a theta to compare
+      const Mesh fixed_all = refined(c.mesh, all);
+      EXPECT_EQ(fixed_all.num_faces(), fast.num_faces());
+    }
+  }
+}
+
+TEST(Refine, SameOutputForOneAndTwoThreads) {
+  for (const Case& c : cases(30000)) {
+    SCOPED_TRACE(c.name);
+    for (Mode mode : {Mode::kUniform, Mode::kIteas}) {
+      EXPECT_TRUE(same_mesh(refined(c.mesh, opts(mode, 2, 1)), refined(c.mesh, opts(mode, 2, 2))));
+    }
+  }
+}
+
+TEST(Refine, PlanarMeshStaysPlanar) {
+  const double o[3] = {1, 2, 3}, u[3] = {2, 0.5, 1}, v[3] = {-0.5, 1.5, 0.25};
+  const Mesh grid = test::planar_grid(12, o, u, v);
+  const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
+  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  for (Mode mode : {Mode::kUniform, Mode::kIteas}) {
+    RefineOptions ro = opts(mode, 3);
+    ro.threshold.kind = ThresholdSpec::Kind::kDegrees;  // a flat mesh has no bend: select everything
+    ro.threshold.value = -1;
+    const Mesh out = refined(grid, ro);
+    EXPECT_GT(out.num_faces(), grid.num_faces());
+    for (int32_t i = 0; i < out.num_vertices(); ++i) {
+      double d = 0;
+      for (int k = 0; k < 3; ++k) d += (out.positions[3 * i + k] - o[k]) * n[k] / len;
+      ASSERT_LT(std::fabs(d), 1e-5) << "vertex " << i;
+    }
+  }
+}
+
+void transform(Mesh& m, const double a[3][3], const double t[3]) {
+  for (int32_t i = 0; i < m.num_vertices(); ++i) {
+    double p[3] = {m.positions[3 * i], m.positions[3 * i + 1], m.positions[3 * i + 2]};
+    for (int r = 0; r < 3; ++r)
+      m.positions[3 * i + r] = float(a[r][0] * p[0] + a[r][1] * p[1] + a[r][2] * p[2] + t[r]);
+  }
+}
+
+TEST(Refine, AffineInvariance) {
+  // Uniform Butterfly commutes with any affine map; the adaptive selection
+  // (angles) with similarities.
+  const double shear[3][3] = {{1.5, 0.3, 0}, {0, 0.8, 0.2}, {0.1, 0, 1.2}};
+  // A similarity that is exact in floating point (a half turn and a power-of-two
+  // scale), so angles and therefore the selection are bit-identical.
+  const double sim[3][3] = {{-2, 0, 0}, {0, 2, 0}, {0, 0, -2}};
+  const double t[3] = {3, -1, 2};
+  const double none[3] = {0, 0, 0};
+  for (const Case& cs : cases(6000)) {
+    SCOPED_TRACE(cs.name);
+    for (auto [mode, a] : {std::make_pair(Mode::kUniform, &shear), std::make_pair(Mode::kIteas, &sim)}) {
+      const double* shift = mode == Mode::kUniform ? t : none;
+      Mesh moved = cs.mesh;
+      transform(moved, *a, shift);
+      Mesh x = refined(cs.mesh, opts(mode, 2));
+      transform(x, *a, shift);
+      const Mesh y = refined(moved, opts(mode, 2));
+      ASSERT_EQ(x.num_faces(), y.num_faces());
+      ASSERT_EQ(x.corner_vertex, y.corner_vertex);
+      const double diag = bounding_box(y).diagonal();
+      double worst = 0;
+      for (size_t i = 0; i < x.positions.size(); ++i) worst = std::max(worst, double(std::fabs(x.positions[i] - y.positions[i])));
+      EXPECT_LT(worst, 1e-5 * diag);
+    }
+  }
+}
+
+TEST(Refine, BudgetIsNeverExceeded) {
+  for (const Case& c : cases(10000)) {
+    SCOPED_TRACE(c.name);
+    for (int64_t budget : {c.mesh.num_faces() + 10, c.mesh.num_faces() * 3, c.mesh.num_faces() * 10}) {
+      for (Mode mode : {Mode::kIteas, Mode::kUniform}) {
+        RefineOptions o = opts(mode, 4);
+        o.max_triangles = budget;
+        RefineStats st;
+        const Mesh out = refined(c.mesh, o, &st);
+        EXPECT_LE(out.num_faces(), std::max<int64_t>(budget, c.mesh.num_faces()));
+        if (out.num_faces() < c.mesh.num_faces() * 256 && mode == Mode::kUniform) EXPECT_EQ(st.stopped_by, "budget");
+      }
+    }
+  }
+}
+
+TEST(Refine, IteasConvergesOrStopsWithAReason) {
+  for (const Case& c : cases(6000)) {
+    RefineStats st;
+    refined(c.mesh, opts(Mode::kIteas, 6), &st);
+    EXPECT_TRUE(st.stopped_by == "converged" || st.stopped_by == "max_levels" || st.stopped_by == "budget") << c.name;
+    EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;  // smoother on average
+  }
+}
+
+TEST(Refine, CancellationIsHonoured) {
+  const Mesh s = test::icosphere(3);
+  std::atomic<bool> cancel{true};
+  RefineHooks h;
+  h.cancel = &cancel;
+  Mesh m = s;
+  RefineStats st;
+  EXPECT_EQ(refine_mesh(m, opts(Mode::kUniform, 3), h, &st), RefineResult::kCancelled);
+  EXPECT_EQ(st.stopped_by, "cancelled");
+}
+
+}  // namespace
+}  // namespace iteas

@@ -1,0 +1,40 @@
+// Helpers shared by the test files: mesh files shipped under tests/data and,
+// when present, the whole corpus under ../shared/meshes (ITEAS_CORPUS overrides).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/mesh.h"
+#include "io/document.h"
+
+namespace iteas::test {
+
+std::string data_dir();    // tests/data
+std::string corpus_dir();  // "" when the corpus is absent
+std::vector<uint8_t> read_bytes(const std::string& path);
+
+// Valid meshes: the shipped ones, plus the corpus's valid sections if present.
+std::vector<std::string> valid_mesh_files();
+// Deliberately broken inputs: tests/data/nasty plus corpus nasty/.
+std::vector<std::string> nasty_files();
+
+Status load(const std::string& path, Document* doc);
+
+// Facts computed by brute force from faces alone (by vertex index).
+struct EdgeFacts {
+  int64_t edges = 0;            // undirected
+  int64_t boundary_corners = 0; // face sides without a proper partner
+  int64_t non_manifold = 0;     // edges with 3+ face uses
+  int64_t conflicts = 0;        // 2 uses in the same direction
+  int64_t boundary_loops = 0;   // loops of the unmatched directed edges
+};
+EdgeFacts edge_facts(const Mesh& m);
+int64_t euler_characteristic(const Mesh& m);  // V (used) - E + F
+
+// Generated shapes.
+Mesh icosphere(int subdivisions);
+Mesh planar_grid(int n, const double origin[3], const double u[3], const double v[3]);
+
+}  // namespace iteas::test
