@@ -137,7 +137,7 @@ int run(const std::vector<std::string>& args, bool refine) {
   }
   if (!stats_path.empty()) {
     const std::string text = result.stats.dump(2) + "\n";
-    if (!write_file(stats_path == "-" ? "/dev/stdout" : stats_path, text.data(), text.size())) {
+    if (!write_file(stats_path, text.data(), text.size())) {
       std::fprintf(stderr, "iteas: cannot write %s\n", stats_path.c_str());
       return kExitIo;
     }

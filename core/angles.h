@@ -50,6 +50,6 @@ double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const Corn
 struct QualitySummary {
   double min_angle = 0, p1_angle = 0;
 };
-QualitySummary triangle_quality(const Mesh& mesh);
+QualitySummary triangle_quality(const Mesh& mesh, int threads = 1);
 
 }  // namespace iteas

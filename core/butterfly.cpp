@@ -7,13 +7,13 @@
 namespace iteas {
 
 void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
-                      std::vector<uint8_t>& sharp) {
+                      std::vector<uint8_t>& sharp, int threads) {
   const int32_t nc = ct.num_corners();
-  sharp.assign(nc, 0);
-  for (int32_t c = 0; c < nc; ++c) {
-    if (ct.opposite(c) < 0) sharp[c] = 1;
-    else if (crease_angle > 0 && theta && (*theta)[c] >= crease_angle) sharp[c] = 1;
-  }
+  sharp.resize(nc);
+  parallel_for(nc, threads, [&](int64_t b, int64_t e) {
+    for (int64_t c = b; c < e; ++c)
+      sharp[c] = ct.opposite(int32_t(c)) < 0 || (crease_angle > 0 && theta && (*theta)[c] >= crease_angle);
+  });
 }
 
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
@@ -46,6 +46,25 @@ namespace {
 
 inline void add(std::vector<StencilTerm>& out, int32_t v, double w) { out.push_back({v, w}); }
 
+// s_j for valence K (Zorin et al. 1996): K = 3 and 4 special, K >= 5 by formula.
+// Tabulated once for K < 64; larger valences compute on the fly.
+constexpr int kMaxTabulated = 64;
+struct WeightTable {
+  double w[kMaxTabulated][kMaxTabulated];
+  WeightTable() {
+    for (int K = 3; K < kMaxTabulated; ++K)
+      for (int j = 0; j < K; ++j) {
+        if (K == 3) w[K][j] = j == 0 ? 5.0 / 12.0 : -1.0 / 12.0;
+        else if (K == 4) w[K][j] = j == 0 ? 3.0 / 8.0 : (j == 2 ? -1.0 / 8.0 : 0.0);
+        else w[K][j] = (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+      }
+  }
+};
+const double* extraordinary_weights(int K) {
+  static const WeightTable table;  // immutable after construction
+  return K >= 3 && K < kMaxTabulated ? table.w[K] : nullptr;
+}
+
 // Extraordinary rule at vertex v (corner x0 at v, whose next vertex is the
 // other endpoint of the edge): 3/4 v + sum_j s_j e_j over the ring in order.
 void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, double scale,
@@ -53,12 +72,10 @@ void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, dou
   const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
   const int K = valence;
   add(out, cv[x0], 0.75 * scale);
+  const double* w = extraordinary_weights(K);
   int32_t x = x0;
   for (int j = 0; j < K; ++j) {
-    double s;
-    if (K == 3) s = j == 0 ? 5.0 / 12.0 : -1.0 / 12.0;
-    else if (K == 4) s = j == 0 ? 3.0 / 8.0 : (j == 2 ? -1.0 / 8.0 : 0.0);
-    else s = (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+    const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
     if (s != 0.0) add(out, cv[next_corner(x)], s * scale);
     x = ctx.ct->swing_right(x);
   }

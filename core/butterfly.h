@@ -34,7 +34,7 @@ struct ButterflyContext {
 
 // Marks boundary edges and, when crease_angle > 0, edges with theta >= it.
 void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
-                      std::vector<uint8_t>& sharp);
+                      std::vector<uint8_t>& sharp, int threads = 1);
 
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
                        VertexClass& out, int threads = 1);

@@ -11,11 +11,11 @@ int hardware_threads() {
   return n == 0 ? 1 : static_cast<int>(n);
 }
 
-void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body) {
+void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body, int64_t grain) {
   if (n <= 0) return;
   if (threads <= 0) threads = hardware_threads();
-  constexpr int64_t kMinPerThread = 4096;
-  threads = static_cast<int>(std::min<int64_t>(threads, (n + kMinPerThread - 1) / kMinPerThread));
+  grain = std::max<int64_t>(1, grain);
+  threads = static_cast<int>(std::min<int64_t>(threads, (n + grain - 1) / grain));
   if (threads <= 1) {
     body(0, n);
     return;

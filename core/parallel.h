@@ -8,10 +8,18 @@
 
 namespace iteas {
 
-// Runs body(begin, end) over [0, n) on up to |threads| threads (<= 0: all cores).
-// Small ranges run inline.
-void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body);
+// Runs body(begin, end) over [0, n) on up to |threads| threads (<= 0: all cores),
+// giving each thread at least |grain| indices (small ranges run inline). Loops
+// over fixed-size chunks pass grain 1.
+void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body, int64_t grain = 4096);
 
 int hardware_threads();
 
+}  // namespace iteas
+
+namespace iteas {
+// For loops whose indices are already coarse chunks of work.
+inline void parallel_for_chunks(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body) {
+  parallel_for(n, threads, body, 1);
+}
 }  // namespace iteas

@@ -122,7 +122,7 @@ void grow_wedges(Mesh& m, int64_t nw) {
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
   else std::vector<float>().swap(s.theta);
-  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp);
+  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
   s.bctx.mesh = &m;
   s.bctx.ct = &s.ct;
   s.bctx.sharp = &s.sharp;
@@ -147,7 +147,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
   const int64_t chunks = (nc + kChunk - 1) / kChunk;
   std::vector<int64_t> edges_in(chunks + 1, 0), wedges_in(chunks + 1, 0);
   const bool wedges = m.has_wedges();
-  parallel_for(chunks, s.threads, [&](int64_t b, int64_t e) {
+  parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
       int64_t ne = 0, nw = 0;
       for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
@@ -174,7 +174,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
 
   // Data pass: stencils from the old level; new wedges blended per side.
-  parallel_for(chunks, s.threads, [&](int64_t b, int64_t e) {
+  parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
       int64_t id = nv + edges_in[k], wid = nw0 + wedges_in[k];
@@ -227,7 +227,13 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
     }
   });
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
-  std::vector<int32_t>().swap(evert);
+  // Keep, per canonical corner, its new vertex (-1 elsewhere) for the vertex corners.
+  std::vector<int32_t> opp_old_canonical;
+  opp_old_canonical.swap(evert);
+  parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t c = b; c < e; ++c)
+      if (!canonical(c)) opp_old_canonical[c] = -1;
+  });
   std::vector<int32_t>().swap(ewedge);
   m.corner_vertex.swap(cv);
   std::vector<int32_t>().swap(cv);
@@ -260,7 +266,25 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
   note_peak(s, m, vbytes(nopp));
   s.ct.opposites().swap(nopp);
   std::vector<int32_t>().swap(nopp);
-  s.ct.compute_vertex_corners(m);
+  // Vertex corners follow too: an old vertex's corner k of face f becomes
+  // corner k of child k (still the start of an open fan); the new vertex on
+  // the edge opposite corner k starts its fan at corner k+1 of child k+2.
+  std::vector<int32_t>& vc = s.ct.vertex_corners();
+  vc.resize(size_t(nv) + ne);
+  parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t c = vc[v];
+      if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
+    }
+  });
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t f = b; f < e; ++f)
+      for (int k = 0; k < 3; ++k) {
+        const int64_t c = 3 * f + k;
+        if (opp_old_canonical[c] >= 0) vc[opp_old_canonical[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+      }
+  });
+  std::vector<int32_t>().swap(opp_old_canonical);
   if (!s.green.empty()) s.green.assign(m.num_faces(), 0);
 
   ls.faces_selected = nf;
@@ -620,7 +644,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (o.mode == Mode::kUniform) T_input = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean;
   stats.threshold = T_input;
   stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
-  stats.quality_before = triangle_quality(m);
+  stats.quality_before = triangle_quality(m, s.threads);
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
   note_peak(s, m, 0);
 
@@ -629,6 +653,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.stopped_by = "max_levels";
   std::vector<float> fmax;
   std::vector<int32_t> selected;
+  AngleSummary last_after;
   for (int level = 1; level <= o.levels; ++level) {
     if (cancelled()) { stats.stopped_by = "cancelled"; break; }
     const double lt0 = now();
@@ -695,6 +720,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     }
     ++levels_done;
     const AngleSummary after = summarize_angles(m, s.ct, nullptr, ls.threshold, crease, s.threads);
+    last_after = after;
     ls.triangles_after = m.num_faces();
     ls.mean_theta_after = after.mean;
     ls.max_theta_after = after.max;
@@ -710,8 +736,12 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     orthogonalise_tangents(m);
   }
   stats.ms_refine = now() - t1;
-  stats.after = summarize_angles(m, s.ct, nullptr, stats.threshold, crease, s.threads);
-  stats.quality_after = triangle_quality(m);
+  // The last level's summary already describes the output when T is the same.
+  if (!stats.levels.empty() && stats.levels.back().threshold == stats.threshold && last_after.edges > 0)
+    stats.after = last_after;
+  else
+    stats.after = summarize_angles(m, s.ct, nullptr, stats.threshold, crease, s.threads);
+  stats.quality_after = triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();
   stats.uniform_triangles = stats.triangles_in;

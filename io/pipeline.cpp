@@ -1,5 +1,6 @@
 #include "io/pipeline.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/angles.h"
@@ -22,12 +23,20 @@ Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   std::vector<RefineStats> per_mesh(doc.meshes.size());
   double ms_topology = 0, ms_refine = 0;
   if (rq.refine) {
+    // max_triangles bounds the whole output: each mesh gets a share in
+    // proportion to its input (never less than what it already has).
+    int64_t total_in = 0;
+    for (const MeshSlot& m : doc.meshes) total_in += m.mesh.num_faces();
     for (size_t i = 0; i < doc.meshes.size(); ++i) {
+      RefineOptions ro = rq.options.refine;
+      const int64_t own = doc.meshes[i].mesh.num_faces();
+      if (doc.meshes.size() > 1 && total_in > 0)
+        ro.max_triangles = std::max<int64_t>(own, int64_t(double(ro.max_triangles) * double(own) / double(total_in)));
       RefineHooks rh;
       rh.now_ms = hooks.now_ms;
       rh.progress = hooks.progress;
       rh.cancel = hooks.cancel;
-      const RefineResult r = refine_mesh(doc.meshes[i].mesh, rq.options.refine, rh, &per_mesh[i]);
+      const RefineResult r = refine_mesh(doc.meshes[i].mesh, ro, rh, &per_mesh[i]);
       ms_topology += per_mesh[i].ms_topology;
       ms_refine += per_mesh[i].ms_refine;
       if (r == RefineResult::kCancelled) {

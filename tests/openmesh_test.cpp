@@ -91,7 +91,7 @@ TEST(OpenMeshDifferential, ClosedCorpusMeshes) {
   std::vector<std::pair<std::string, int>> all = files;
   if (!test::corpus_dir().empty())
     for (const char* f : {"/classic/kitten.nf20k.off", "/classic/bunny.off", "/classic/3holes.off"})
-      all.push_back({test::corpus_dir() + f, 2});  // level 3 of 20k faces is 1.3M: level 2 keeps the suite quick
+      all.push_back({test::corpus_dir() + f, 3});
   for (const auto& [path, levels] : all) {
     Document d;
     ASSERT_TRUE(test::load(path, &d).ok()) << path;

@@ -1,0 +1,144 @@
+// Uniform modified Butterfly, ours against OpenMesh's ModifiedButterflyT, side
+// by side in one process on the same meshes (issue 3, point 4). Prints output
+// triangles per second (median of repeated runs), the ratio, the 1 -> 2 thread
+// speed-up, and peak heap growth per output triangle (every allocation in this
+// process is counted, ours and OpenMesh's alike).
+//   build/bench_butterfly [tests/data/bunny-npm.obj] [bun_zipper.ply]
+#include <OpenMesh/Core/Mesh/TriMesh_ArrayKernelT.hh>
+#include <OpenMesh/Tools/Subdivider/Uniform/ModifiedButterFlyT.hh>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <iterator>
+#include <new>
+#include <string>
+#include <vector>
+
+#include "core/refine.h"
+#include "io/document.h"
+
+// --- heap accounting --------------------------------------------------------
+static std::atomic<int64_t> g_current{0}, g_peak{0};
+static void note(int64_t delta) {
+  const int64_t now = g_current.fetch_add(delta) + delta;
+  int64_t p = g_peak.load();
+  while (now > p && !g_peak.compare_exchange_weak(p, now)) {}
+}
+void* operator new(size_t n) {
+  void* p = std::malloc(n + 16);
+  if (!p) throw std::bad_alloc();
+  *static_cast<size_t*>(p) = n;
+  note(int64_t(n));
+  return static_cast<char*>(p) + 16;
+}
+void operator delete(void* p) noexcept {
+  if (!p) return;
+  char* base = static_cast<char*>(p) - 16;
+  note(-int64_t(*reinterpret_cast<size_t*>(base)));
+  std::free(base);
+}
+void operator delete(void* p, size_t) noexcept { operator delete(p); }
+void* operator new[](size_t n) { return operator new(n); }
+void operator delete[](void* p) noexcept { operator delete(p); }
+void operator delete[](void* p, size_t) noexcept { operator delete(p); }
+
+using OMesh = OpenMesh::TriMesh_ArrayKernelT<>;
+using Clock = std::chrono::steady_clock;
+
+static iteas::Mesh load(const std::string& path) {
+  std::ifstream f(path, std::ios::binary);
+  std::vector<uint8_t> b((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  iteas::Document doc;
+  const iteas::Status s = iteas::read_document(b.data(), b.size(), iteas::sniff_format(b.data(), b.size(), path),
+                                               iteas::ReadLimits(), &doc);
+  if (!s.ok() || doc.meshes.empty()) {
+    std::fprintf(stderr, "cannot read %s: %s\n", path.c_str(), s.message.c_str());
+    std::exit(1);
+  }
+  return doc.meshes[0].mesh;
+}
+
+struct Run {
+  double seconds;
+  int64_t triangles;
+  int64_t peak_growth;
+};
+
+static double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+static Run ours(const iteas::Mesh& input, int levels, int threads) {
+  iteas::Mesh m = input;
+  iteas::RefineOptions o;
+  o.mode = iteas::Mode::kUniform;
+  o.levels = levels;
+  o.threads = threads;
+  o.max_triangles = int64_t(1) << 40;
+  iteas::RefineStats st;
+  const int64_t before = g_current.load();
+  g_peak.store(before);
+  const auto t0 = Clock::now();
+  iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
+  const double s = std::chrono::duration<double>(Clock::now() - t0).count();
+  return {s, m.num_faces(), g_peak.load() - before};
+}
+
+static Run openmesh(const iteas::Mesh& input, int levels) {
+  OMesh om;
+  std::vector<OMesh::VertexHandle> vh;
+  for (int32_t v = 0; v < input.num_vertices(); ++v)
+    vh.push_back(om.add_vertex(OMesh::Point(input.positions[3 * v], input.positions[3 * v + 1], input.positions[3 * v + 2])));
+  for (int32_t f = 0; f < input.num_faces(); ++f)
+    om.add_face(vh[input.corner_vertex[3 * f]], vh[input.corner_vertex[3 * f + 1]], vh[input.corner_vertex[3 * f + 2]]);
+  OpenMesh::Subdivider::Uniform::ModifiedButterflyT<OMesh> bf;
+  const int64_t before = g_current.load();
+  g_peak.store(before);
+  const auto t0 = Clock::now();
+  bf.attach(om);
+  bf(size_t(levels));
+  bf.detach();
+  const double s = std::chrono::duration<double>(Clock::now() - t0).count();
+  return {s, int64_t(om.n_faces()), g_peak.load() - before};
+}
+
+int main(int argc, char** argv) {
+  const std::string src = ITEAS_SOURCE_DIR;
+  const std::string bunny = argc > 1 ? argv[1] : src + "/tests/data/bunny-npm.obj";
+  const std::string zipper = argc > 2 ? argv[2] : src + "/../shared/meshes/classic/bun_zipper.ply";
+  struct Case { std::string name; std::string path; int level; };
+  std::vector<Case> cases;
+  for (int l = 1; l <= 4; ++l) cases.push_back({"bunny-npm", bunny, l});
+  if (std::ifstream(zipper).good()) cases.push_back({"bun_zipper", zipper, 3});
+
+  std::printf("| mesh | level | out tris | OpenMesh Mtri/s | IteAS 1T Mtri/s | IteAS 2T Mtri/s | 1T vs OpenMesh | 2T vs 1T | OpenMesh B/tri | IteAS B/tri |\n");
+  std::printf("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+  for (const Case& c : cases) {
+    const iteas::Mesh input = load(c.path);
+    const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
+    const int reps = out_tris > 2000000 ? 3 : (out_tris > 200000 ? 5 : 11);
+    std::vector<double> om_t, t1, t2;
+    Run om_last{}, one_last{};
+    for (int r = 0; r < reps; ++r) {
+      om_last = openmesh(input, c.level);
+      om_t.push_back(om_last.seconds);
+      one_last = ours(input, c.level, 1);
+      t1.push_back(one_last.seconds);
+      t2.push_back(ours(input, c.level, 2).seconds);
+    }
+    const double om = double(om_last.triangles) / median(om_t) / 1e6;
+    const double a = double(one_last.triangles) / median(t1) / 1e6;
+    const double b = double(one_last.triangles) / median(t2) / 1e6;
+    std::printf("| %s | %d | %lld | %.2f | %.2f | %.2f | %.1fx | %.2fx | %.0f | %.1f |\n", c.name.c_str(), c.level,
+                static_cast<long long>(one_last.triangles), om, a, b, a / om, b / a,
+                double(om_last.peak_growth) / double(om_last.triangles),
+                double(one_last.peak_growth) / double(one_last.triangles));
+    std::fflush(stdout);
+  }
+  return 0;
+}

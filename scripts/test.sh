@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Quick start, second command: install, build, and run the whole test suite:
+# unit and property tests, the OpenMesh differential test, the CLI over every
+# mesh checked by the Khronos validator and draco3d, then the readers and the
+# broken-file checks again under AddressSanitizer + UBSan.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh build Release
+(cd tests/js && npm ci --no-audit --no-fund --loglevel=error)
+
+echo "[test] release build"
+ctest --test-dir build --output-on-failure -j 2
+
+echo "[test] AddressSanitizer + UndefinedBehaviorSanitizer build"
+cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=Asan >/dev/null
+ninja -C build-asan iteas corner_table_test io_test refine_test
+export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+ctest --test-dir build-asan --output-on-failure -j 2 -R 'corner_table_test|io_test'
+build-asan/tests/refine_test --gtest_filter='*AdaptiveWithEverything*:*Planar*:*Cancellation*:*Budget*' --gtest_brief=1
+ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_JS_ONLY=broken node --test tests/js/corpus.test.mjs
+echo "[test] all passed"

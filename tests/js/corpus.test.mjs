@@ -1,0 +1,122 @@
+// The CLI over every mesh we have, checked by independent tools (issue 2
+// points 2-3, issue 3 point 5). Runs on the shipped meshes, and on the whole
+// corpus in ../shared/meshes when it is present.
+import { test } from 'node:test';
+import assert from 'node:assert/strict';
+import fs from 'node:fs';
+import path from 'node:path';
+import {
+  HAVE_CORPUS, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
+} from './check.mjs';
+
+// ITEAS_JS_ONLY=broken runs only the broken-input test (used with the ASan build).
+const only = process.env.ITEAS_JS_ONLY || '';
+const maybe = (name) => (only && !name.includes(only) ? test.skip : test);
+
+const isGltf = (f) => /\.(glb|gltf)$/i.test(f);
+const inputAttributes = (info) => {
+  const s = new Set(['POSITION']);
+  for (const m of info.per_mesh) for (const a of m.attributes) if (!a.includes(':')) s.add(a);
+  return s;
+};
+
+maybe('convert')(`every valid mesh converts to plain and Draco GLB (${HAVE_CORPUS ? 'corpus present' : 'shipped meshes only'})`, async (t) => {
+  for (const file of validMeshes()) {
+    await t.test(path.basename(file) + ' ' + path.basename(path.dirname(file)), async () => {
+      const r0 = iteas(['inspect', file]);
+      if (r0.code === 3 && /no usable triangles|point cloud/.test(r0.stderr)) return;  // point clouds: refused with exit 3
+      assert.equal(r0.code, 0, r0.stderr);
+      const info = JSON.parse(r0.stdout);
+      const inputErrors = isGltf(file) ? (await validate(fs.readFileSync(file))).numErrors : 0;
+      const expected = info.triangles - info.dropped_faces;
+      const out = {};
+      for (const compression of ['none', 'draco']) {
+        const o = path.join(tmp, `${path.basename(file)}.${compression}.glb`);
+        const s = path.join(tmp, `${path.basename(file)}.${compression}.json`);
+        const r = iteas(['convert', file, o, '--compression', compression, '--stats', s, '--quiet']);
+        assert.equal(r.code, 0, r.stderr);
+        const stats = JSON.parse(fs.readFileSync(s, 'utf8'));
+        const facts = await checkGltfOutput(o);
+        if (inputErrors === 0) assert.equal(facts.errors, 0, JSON.stringify(facts.messages.slice(0, 3)));
+        assert.equal(facts.triangles, stats.output.triangles, 'statistics match the file');
+        assert.equal(facts.vertices, stats.output.vertices, 'statistics match the file');
+        assert.equal(stats.output.triangles + stats.output.triangles_collapsed_by_quantization, expected);
+        assert.deepEqual([...facts.attributes].sort(), [...inputAttributes(info)].sort());
+        if (compression === 'draco') assert.ok(facts.draco > 0 || info.per_mesh.every((m) => m.morph_targets > 0));
+        out[compression] = facts;
+      }
+      // Positions equal within the quantization step (14 bits over the largest extent).
+      const plain = concat(out.none.positions), dr = concat(out.draco.positions);
+      let range = 0;
+      for (let k = 0; k < 3; k++) {
+        let lo = Infinity, hi = -Infinity;
+        for (let i = k; i < plain.length; i += 3) { lo = Math.min(lo, plain[i]); hi = Math.max(hi, plain[i]); }
+        range = Math.max(range, hi - lo);
+      }
+      const step = range / ((1 << 14) - 1);
+      assert.ok(maxNearestDistance(dr, plain, Math.max(step * 2, 1e-12)) <= step * 0.87 + 1e-7 * range, 'Draco positions within one quantization step');
+    });
+  }
+});
+
+const MODES = [
+  ['--mode', 'iteas'],
+  ['--mode', 'uniform', '--levels', '2'],
+  ['--mode', 'fixed', '--threshold', '10', '--levels', '2'],
+  ['--mode', 'iteas', '--threshold-scope', 'level', '--crease-angle', '60', '--output', 'gltf', '--compression', 'none'],
+];
+
+maybe('refine')('iteas refine in every mode writes valid files whose statistics match them', async (t) => {
+  for (const file of validMeshes()) {
+    for (const mode of MODES) {
+      await t.test(`${path.basename(file)} ${mode.join(' ')}`, async () => {
+        const gltf = mode.includes('gltf');
+        const o = path.join(tmp, `${path.basename(file)}.refined.${gltf ? 'gltf' : 'glb'}`);
+        const s = o + '.json';
+        const r = iteas(['refine', file, '-o', o, ...mode, '--max-triangles', '600000', '--stats', s, '--quiet']);
+        if (r.code === 3 && /no usable triangles|point cloud/.test(r.stderr)) return;
+        assert.equal(r.code, 0, r.stderr);
+        const stats = JSON.parse(fs.readFileSync(s, 'utf8'));
+        const facts = await checkGltfOutput(o);
+        const inputErrors = isGltf(file) ? (await validate(fs.readFileSync(file))).numErrors : 0;
+        if (inputErrors === 0) assert.equal(facts.errors, 0, JSON.stringify(facts.messages.slice(0, 3)));
+        assert.equal(facts.triangles, stats.output.triangles);
+        assert.equal(facts.vertices, stats.output.vertices);
+        assert.ok(stats.output.triangles <= 600000 + 0);
+        assert.ok(['converged', 'max_levels', 'budget'].includes(stats.stopped_by));
+        if (gltf) {
+          const embedded = JSON.parse(fs.readFileSync(o, 'utf8')).asset.extras.iteas;
+          assert.equal(embedded.output.triangles, stats.output.triangles);
+          assert.deepEqual(embedded.levels.map((l) => l.triangles_after), stats.levels.map((l) => l.triangles_after));
+        }
+      });
+    }
+  }
+});
+
+maybe('broken')('broken inputs end with exit code 3 and a one-line reason, or succeed with warnings', async (t) => {
+  for (const file of nastyMeshes()) {
+    await t.test(path.basename(file), () => {
+      const o = path.join(tmp, path.basename(file) + '.out.glb');
+      const r = iteas(['refine', file, '-o', o, '--levels', '2', '--stats', '-', '--quiet']);
+      assert.equal(r.signal, null, 'no signal');
+      if (r.code === 0) {
+        const stats = JSON.parse(r.stdout);
+        assert.ok(Array.isArray(stats.warnings));
+      } else {
+        assert.equal(r.code, 3, r.stderr);
+        const lines = r.stderr.trim().split('\n');
+        assert.equal(lines.length, 1, r.stderr);
+        assert.match(lines[0], /^iteas: .+: .+ \([a-z_]+\)$/);
+      }
+    });
+  }
+});
+
+maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
+  assert.equal(iteas(['refine']).code, 2);
+  assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--levels', '9']).code, 2);
+  assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--bogus', '1']).code, 2);
+  assert.equal(iteas(['frobnicate']).code, 2);
+  assert.equal(iteas(['refine', path.join(tmp, 'does-not-exist.glb'), '-o', path.join(tmp, 'y.glb')]).code, 4);
+});
