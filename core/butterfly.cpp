@@ -42,7 +42,31 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
   });
 }
 
+void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {
+  for (size_t f = 0; f < green.size(); ++f)
+    if (green[f] == 2) --vclass.valence[mesh.corner_vertex[3 * f + 2]];
+}
+
 namespace {
+
+inline uint8_t green_of(const ButterflyContext& ctx, int32_t corner) {
+  return ctx.green && !ctx.green->empty() ? (*ctx.green)[corner / 3] : 0;
+}
+
+// The vertex at corner x as the parent of a green pair sees it: the midpoint
+// corner of each child stands for the parent's opposite vertex.
+inline int32_t vtx(const ButterflyContext& ctx, int32_t x) {
+  const uint8_t g = green_of(ctx, x);
+  if (g == 1 && x % 3 == 1) return ctx.mesh->corner_vertex[x + 3];  // b of the second child
+  if (g == 2 && x % 3 == 0) return ctx.mesh->corner_vertex[x - 3];  // a of the first child
+  return ctx.mesh->corner_vertex[x];
+}
+
+// Is the edge opposite corner x one of the parent's own edges, (c, a) or (b, c)?
+inline bool parent_edge(const ButterflyContext& ctx, int32_t x) {
+  const uint8_t g = green_of(ctx, x);
+  return (g == 1 && x % 3 == 1) || (g == 2 && x % 3 == 0);
+}
 
 inline void add(std::vector<StencilTerm>& out, int32_t v, double w) { out.push_back({v, w}); }
 
@@ -75,6 +99,9 @@ void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, dou
   const double* w = extraordinary_weights(K);
   int32_t x = x0;
   for (int j = 0; j < K; ++j) {
+    // The bisecting edge (c, m) of a green pair with this vertex as apex is
+    // not in the parent's ring: skip it (classify discounted it from K).
+    while (green_of(ctx, x) == 2 && x % 3 == 2) x = ctx.ct->swing_right(x);
     const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
     if (s != 0.0) add(out, cv[next_corner(x)], s * scale);
     x = ctx.ct->swing_right(x);
@@ -83,16 +110,35 @@ void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, dou
 
 // The point on the far side of the edge opposite corner |x| (across a sharp
 // edge it is replaced by the parallelogram completion of x's own triangle).
-void wing(const ButterflyContext& ctx, int32_t x, double w, std::vector<StencilTerm>& out) {
-  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+void plain_wing(const ButterflyContext& ctx, int32_t x, double w, std::vector<StencilTerm>& out) {
   const int32_t o = ctx.ct->opposite(x);
   if (o >= 0 && !(*ctx.sharp)[x]) {
-    add(out, cv[o], w);
+    add(out, vtx(ctx, o), w);
   } else {
-    add(out, cv[next_corner(x)], w);
-    add(out, cv[prev_corner(x)], w);
-    add(out, cv[x], -w);
+    add(out, vtx(ctx, next_corner(x)), w);
+    add(out, vtx(ctx, prev_corner(x)), w);
+    add(out, vtx(ctx, x), -w);
   }
+}
+
+// A wing of an edge whose face is |x|'s face. When that edge is a parent edge
+// of a green pair (|parent_view|), the wings are the parent's: across its
+// other parent edge (reached through the sibling), and across (a, b), where
+// the neighbour is already split, by parallelogram completion a + b - c.
+void wing(const ButterflyContext& ctx, int32_t x, bool parent_view, double w, std::vector<StencilTerm>& out) {
+  const uint8_t g = green_of(ctx, x);
+  if (parent_view && g != 0) {
+    const int32_t k = x % 3, f0 = (g == 1 ? x / 3 : x / 3 - 1) * 3;  // first corner of the first child
+    const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+    const int32_t a = cv[f0], b = cv[f0 + 4], c = cv[f0 + 2];
+    if ((g == 1 && k == 2) || (g == 2 && k == 2)) {  // across (a, m) or (m, b): across (a, b)
+      add(out, a, w); add(out, b, w); add(out, c, -w);
+      return;
+    }
+    if (g == 1 && k == 0) { plain_wing(ctx, f0 + 3, w, out); return; }  // across (b, c)
+    if (g == 2 && k == 1) { plain_wing(ctx, f0 + 1, w, out); return; }  // across (c, a)
+  }
+  plain_wing(ctx, x, w, out);
 }
 
 // Along a boundary or crease curve: the curve neighbour of v other than
@@ -143,6 +189,7 @@ void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<Stenc
     return;
   }
   const bool c1 = ctx.vclass.complete[v1], c2 = ctx.vclass.complete[v2];
+  const bool pf = parent_edge(ctx, c), pg = parent_edge(ctx, d);
   const int32_t k1 = ctx.vclass.valence[v1], k2 = ctx.vclass.valence[v2];
   // Corner at v1 whose next vertex is v2 is next(c); at v2 whose next is v1: next(d).
   if (c1 && c2) {
@@ -150,12 +197,12 @@ void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<Stenc
       const double w = ctx.tension;
       add(out, v1, 0.5 - w);
       add(out, v2, 0.5 - w);
-      add(out, cv[c], 0.125 + 2 * w);
-      add(out, cv[d], 0.125 + 2 * w);
-      wing(ctx, prev_corner(c), -1.0 / 16.0 - w, out);  // across (a1, v1)
-      wing(ctx, next_corner(c), -1.0 / 16.0 - w, out);  // across (v2, a1)
-      wing(ctx, prev_corner(d), -1.0 / 16.0 - w, out);
-      wing(ctx, next_corner(d), -1.0 / 16.0 - w, out);
+      add(out, vtx(ctx, c), 0.125 + 2 * w);
+      add(out, vtx(ctx, d), 0.125 + 2 * w);
+      wing(ctx, prev_corner(c), pf, -1.0 / 16.0 - w, out);  // across (a1, v1)
+      wing(ctx, next_corner(c), pf, -1.0 / 16.0 - w, out);  // across (v2, a1)
+      wing(ctx, prev_corner(d), pg, -1.0 / 16.0 - w, out);
+      wing(ctx, next_corner(d), pg, -1.0 / 16.0 - w, out);
       if (w > 0) {
         // 10-point: the ring neighbours of v1 and v2 straight across from the
         // edge (three steps round a valence-6 ring).
@@ -180,12 +227,12 @@ void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<Stenc
   if (c2) { extraordinary(ctx, next_corner(d), k2, 1.0, out); return; }
   add(out, v1, 0.5);
   add(out, v2, 0.5);
-  add(out, cv[c], 0.125);
-  add(out, cv[d], 0.125);
-  wing(ctx, prev_corner(c), -1.0 / 16.0, out);
-  wing(ctx, next_corner(c), -1.0 / 16.0, out);
-  wing(ctx, prev_corner(d), -1.0 / 16.0, out);
-  wing(ctx, next_corner(d), -1.0 / 16.0, out);
+  add(out, vtx(ctx, c), 0.125);
+  add(out, vtx(ctx, d), 0.125);
+  wing(ctx, prev_corner(c), pf, -1.0 / 16.0, out);
+  wing(ctx, next_corner(c), pf, -1.0 / 16.0, out);
+  wing(ctx, prev_corner(d), pg, -1.0 / 16.0, out);
+  wing(ctx, next_corner(d), pg, -1.0 / 16.0, out);
 }
 
 }  // namespace iteas

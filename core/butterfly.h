@@ -30,7 +30,14 @@ struct ButterflyContext {
   const std::vector<uint8_t>* sharp = nullptr;
   VertexClass vclass;
   double tension = 0;  // w of the 10-point stencil, 0 <= w <= 1/16
+  // Green pairs (per face: 1 = first child (a, m, c), 2 = second (m, b, c));
+  // null or empty when there are none. Stencils see a green pair as its
+  // parent (a, b, c): the bisecting edge (m, c) is not part of any ring.
+  const std::vector<uint8_t>* green = nullptr;
 };
+
+// Removes the bisecting edges of green pairs from the apex valences.
+void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass);
 
 // Marks boundary edges and, when crease_angle > 0, edges with theta >= it.
 void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,

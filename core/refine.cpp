@@ -128,6 +128,8 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   s.bctx.sharp = &s.sharp;
   s.bctx.tension = o.tension;
   classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads);
+  s.bctx.green = &s.green;
+  if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
 }
 
 // ---------------------------------------------------------------------------
