@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "io/pipeline.h"
+#include "server/server.h"
 
 namespace {
 
@@ -21,6 +22,9 @@ const char* kUsage =
     "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--quiet]\n"
     "  iteas convert IN OUT [output options]\n"
     "  iteas inspect IN\n"
+    "  iteas serve [--host H] [--port P] [--workers N] [--queue N] [--max-upload-bytes B]\n"
+    "              [--max-output-triangles N] [--request-timeout S] [--job-ttl S] [--result-bytes-cap B]\n"
+    "              [--grace S] [--read-timeout S] [--api-key K] [--log-format text|json]  (or ITEAS_* env)\n"
     "options (SPEC §3): --mode iteas|uniform|fixed  --levels 1-8  --threshold mean|median|pNN|DEG\n"
     "  --threshold-scope input|level  --select above|below  --crease-angle DEG|off\n"
     "  --max-triangles N  --tension W  --output glb|gltf|drc|obj|ply  --compression draco|none\n"
@@ -174,6 +178,12 @@ int main(int argc, char** argv) {
     if (cmd == "refine") return run(args, true);
     if (cmd == "convert") return run(args, false);
     if (cmd == "inspect") return inspect(args);
+    if (cmd == "serve") {
+      iteas::ServerConfig config;
+      std::string error;
+      if (!iteas::parse_server_flags(args, &config, &error)) return usage(error);
+      return iteas::serve(config);
+    }
     if (cmd == "--help" || cmd == "-h" || cmd == "help") {
       std::fputs(kUsage, stdout);
       return kExitOk;

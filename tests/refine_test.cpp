@@ -190,7 +190,9 @@ TEST(Refine, BudgetIsNeverExceeded) {
         RefineStats st;
         const Mesh out = refined(c.mesh, o, &st);
         EXPECT_LE(out.num_faces(), std::max<int64_t>(budget, c.mesh.num_faces()));
-        if (out.num_faces() < c.mesh.num_faces() * 256 && mode == Mode::kUniform) EXPECT_EQ(st.stopped_by, "budget");
+        if (out.num_faces() < c.mesh.num_faces() * 256 && mode == Mode::kUniform) {
+          EXPECT_EQ(st.stopped_by, "budget");
+        }
       }
     }
   }

@@ -1,0 +1,209 @@
+#include "server/job_queue.h"
+
+namespace iteas {
+
+const char* job_state_name(JobState s) {
+  switch (s) {
+    case JobState::kQueued: return "queued";
+    case JobState::kRunning: return "running";
+    case JobState::kDone: return "done";
+    case JobState::kFailed: return "failed";
+    case JobState::kCancelled: return "cancelled";
+  }
+  return "failed";
+}
+
+nlohmann::json Job::status_json() const {
+  std::lock_guard<std::mutex> lock(mu);
+  nlohmann::json j = {{"id", id},
+                      {"status", job_state_name(state)},
+                      {"progress", {{"level", level}, {"phase", phase}, {"fraction", fraction}}}};
+  if (state == JobState::kDone) j["statistics"] = stats;
+  if (state == JobState::kFailed) j["error"] = {{"code", error.code}, {"message", error.message}};
+  return j;
+}
+
+JobQueue::JobQueue(const QueueLimits& limits, std::function<double()> now_ms)
+    : limits_(limits), now_ms_(std::move(now_ms)) {
+  for (int i = 0; i < std::max(1, limits_.workers); ++i) workers_.emplace_back([this] { work(); });
+}
+
+JobQueue::~JobQueue() { drain(std::chrono::milliseconds(0)); }
+
+bool JobQueue::submit(const std::shared_ptr<Job>& job) {
+  std::lock_guard<std::mutex> lock(mu_);
+  expire_locked();
+  if (closed_ || queue_.size() >= limits_.capacity) return false;
+  job->created = std::chrono::steady_clock::now();
+  queue_.push_back(job);
+  if (job->listed) jobs_[job->id] = job;
+  wake_.notify_one();
+  return true;
+}
+
+std::shared_ptr<Job> JobQueue::find(const std::string& id) {
+  std::lock_guard<std::mutex> lock(mu_);
+  expire_locked();
+  auto it = jobs_.find(id);
+  return it == jobs_.end() ? nullptr : it->second;
+}
+
+bool JobQueue::remove(const std::string& id) {
+  std::shared_ptr<Job> job;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    auto it = jobs_.find(id);
+    if (it == jobs_.end()) return false;
+    job = it->second;
+    jobs_.erase(it);
+    for (auto q = queue_.begin(); q != queue_.end(); ++q)
+      if (*q == job) { queue_.erase(q); break; }
+  }
+  job->cancel = true;
+  std::lock_guard<std::mutex> lock(job->mu);
+  if (job->state == JobState::kQueued) {
+    job->state = JobState::kCancelled;
+    job->finished = std::chrono::steady_clock::now();
+  }
+  job->changed.notify_all();
+  return true;
+}
+
+void JobQueue::drain(std::chrono::milliseconds grace) {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (workers_.empty()) return;
+    closed_ = true;
+    wake_.notify_all();
+  }
+  const auto deadline = std::chrono::steady_clock::now() + grace;
+  while (std::chrono::steady_clock::now() < deadline) {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      if (queue_.empty() && running_ == 0) break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::vector<std::shared_ptr<Job>> left;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    left.assign(queue_.begin(), queue_.end());
+    queue_.clear();
+    for (auto& [id, job] : jobs_) job->cancel = true;
+  }
+  for (auto& job : left) {
+    job->cancel = true;
+    std::lock_guard<std::mutex> lock(job->mu);
+    job->state = JobState::kCancelled;
+    job->finished = std::chrono::steady_clock::now();
+    job->changed.notify_all();
+  }
+  for (std::thread& t : workers_) t.join();
+  workers_.clear();
+}
+
+size_t JobQueue::queued() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return queue_.size();
+}
+
+std::map<std::string, int64_t> JobQueue::counts_by_state() const {
+  std::map<std::string, int64_t> out = {{"queued", 0}, {"running", 0}, {"done", 0}, {"failed", 0}, {"cancelled", 0}};
+  std::lock_guard<std::mutex> lock(mu_);
+  for (const auto& [id, job] : jobs_) {
+    std::lock_guard<std::mutex> jl(job->mu);
+    ++out[job_state_name(job->state)];
+  }
+  return out;
+}
+
+int64_t JobQueue::held_bytes() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  int64_t b = 0;
+  for (const auto& [id, job] : jobs_) {
+    std::lock_guard<std::mutex> jl(job->mu);
+    b += int64_t(job->result.size());
+  }
+  return b;
+}
+
+void JobQueue::expire_locked() {
+  const auto now = std::chrono::steady_clock::now();
+  // TTL first, then the oldest finished results until under the byte cap.
+  std::vector<std::pair<std::chrono::steady_clock::time_point, std::string>> finished;
+  size_t bytes = 0;
+  for (auto it = jobs_.begin(); it != jobs_.end();) {
+    std::lock_guard<std::mutex> jl(it->second->mu);
+    if (it->second->finished_state()) {
+      if (now - it->second->finished > limits_.ttl) { it = jobs_.erase(it); continue; }
+      finished.emplace_back(it->second->finished, it->first);
+      bytes += it->second->result.size();
+    }
+    ++it;
+  }
+  std::sort(finished.begin(), finished.end());
+  for (const auto& [t, id] : finished) {
+    if (bytes <= limits_.result_bytes_cap) break;
+    auto it = jobs_.find(id);
+    bytes -= it->second->result.size();
+    jobs_.erase(it);
+  }
+}
+
+void JobQueue::work() {
+  while (true) {
+    std::shared_ptr<Job> job;
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      wake_.wait(lock, [&] { return closed_ || !queue_.empty(); });
+      if (queue_.empty()) return;  // closed and nothing left
+      job = queue_.front();
+      queue_.pop_front();
+      ++running_;
+    }
+    {
+      std::lock_guard<std::mutex> jl(job->mu);
+      job->state = JobState::kRunning;
+      job->phase = "decode";
+      job->changed.notify_all();
+    }
+    JobHooks hooks;
+    hooks.now_ms = now_ms_;
+    hooks.cancel = &job->cancel;
+    hooks.progress = [&job](int level, const char* phase, double fraction) {
+      std::lock_guard<std::mutex> jl(job->mu);
+      if (level > 0) job->level = level;
+      job->phase = phase;
+      job->fraction = fraction;
+    };
+    JobResult result;
+    Status status;
+    try {
+      status = job->cancel ? Status() : run_job(job->request, hooks, &result);
+    } catch (const std::bad_alloc&) {
+      status = Status::Error(ErrorKind::kTooLarge, "out_of_memory", "the job needs more memory than the server has");
+    }
+    {
+      std::lock_guard<std::mutex> jl(job->mu);
+      if (job->cancel || result.cancelled) {
+        job->state = JobState::kCancelled;
+      } else if (!status.ok()) {
+        job->state = JobState::kFailed;
+        job->error = status;
+      } else {
+        job->state = JobState::kDone;
+        job->stats = std::move(result.stats);
+        job->result = std::move(result.bytes);
+        job->phase = "done";
+        job->fraction = 1;
+      }
+      job->input.clear();
+      job->input.shrink_to_fit();
+      job->finished = std::chrono::steady_clock::now();
+      job->changed.notify_all();
+    }
+    --running_;
+  }
+}
+
+}  // namespace iteas

@@ -1,0 +1,93 @@
+// A bounded work queue in front of a fixed pool of workers. Submitting to a
+// full queue fails at once (the HTTP layer answers 429): there is no unbounded
+// queue anywhere. Jobs expire after a TTL and held results have a byte cap.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "io/pipeline.h"
+
+namespace iteas {
+
+enum class JobState { kQueued, kRunning, kDone, kFailed, kCancelled };
+const char* job_state_name(JobState s);
+
+struct Job {
+  std::string id;
+  bool listed = true;  // false for synchronous requests (not reachable by id)
+  std::vector<uint8_t> input;
+  JobRequest request;  // data/size point into |input|
+  std::atomic<bool> cancel{false};
+  std::chrono::steady_clock::time_point created, finished;
+
+  // Guarded by |mu|.
+  mutable std::mutex mu;
+  std::condition_variable changed;
+  JobState state = JobState::kQueued;
+  int level = 0;
+  std::string phase = "queued";
+  double fraction = 0;
+  nlohmann::json stats;
+  std::vector<uint8_t> result;
+  Status error;
+
+  nlohmann::json status_json() const;  // takes |mu|
+  bool finished_state() const { return state == JobState::kDone || state == JobState::kFailed || state == JobState::kCancelled; }
+};
+
+struct QueueLimits {
+  int workers = 2;
+  size_t capacity = 16;                // queued (not yet running) jobs
+  std::chrono::seconds ttl{600};       // finished jobs are forgotten after this
+  size_t result_bytes_cap = 512u << 20;  // bytes of finished results held at once
+};
+
+class JobQueue {
+ public:
+  JobQueue(const QueueLimits& limits, std::function<double()> now_ms);
+  ~JobQueue();
+
+  // Queues the job, or returns false when the queue is full or closed.
+  bool submit(const std::shared_ptr<Job>& job);
+  std::shared_ptr<Job> find(const std::string& id);
+  // Cancels a queued or running job and forgets it; false if unknown.
+  bool remove(const std::string& id);
+
+  // Stops taking work; lets running and queued jobs finish for |grace|, then
+  // cancels what is left and joins the workers.
+  void drain(std::chrono::milliseconds grace);
+
+  size_t queued() const;
+  size_t running() const { return running_.load(); }
+  std::map<std::string, int64_t> counts_by_state() const;
+  int64_t held_bytes() const;
+
+ private:
+  void work();
+  void expire_locked();
+
+  QueueLimits limits_;
+  std::function<double()> now_ms_;
+  mutable std::mutex mu_;
+  std::condition_variable wake_;
+  std::deque<std::shared_ptr<Job>> queue_;
+  std::map<std::string, std::shared_ptr<Job>> jobs_;  // listed jobs by id
+  std::vector<std::thread> workers_;
+  std::atomic<size_t> running_{0};
+  bool closed_ = false;
+};
+
+}  // namespace iteas

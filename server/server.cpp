@@ -1,0 +1,432 @@
+// The HTTP layer. This is the only file that includes httplib.h. Every
+// handler runs inside one wrapper that maps failures to the error envelope
+// {"error": {"code", "message", "status"}} of SPEC §7.
+#include "server/server.h"
+
+#include <httplib.h>
+#include <signal.h>
+#include <spdlog/sinks/stdout_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include <atomic>
+#include <chrono>
+#include <cstdlib>
+#include <map>
+#include <random>
+#include <thread>
+
+#include "core/parallel.h"
+#include "server/job_queue.h"
+
+namespace iteas {
+
+extern const char* kOpenApiYaml;  // generated from proto/openapi.yaml
+
+namespace {
+
+using json = nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+double now_ms() {
+  return std::chrono::duration<double, std::milli>(Clock::now().time_since_epoch()).count();
+}
+
+// --- metrics -----------------------------------------------------------------
+class Metrics {
+ public:
+  static constexpr double kBuckets[] = {0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60};
+  void observe(const std::string& route, int status, double seconds) {
+    std::lock_guard<std::mutex> lock(mu_);
+    ++requests_[{route, status}];
+    auto& h = hist_[route];
+    if (h.empty()) h.assign(std::size(kBuckets) + 1, 0);
+    size_t i = 0;
+    while (i < std::size(kBuckets) && seconds > kBuckets[i]) ++i;
+    ++h[i];
+    sums_[route] += seconds;
+  }
+  void triangles(int64_t in, int64_t out) {
+    tri_in_ += in;
+    tri_out_ += out;
+  }
+  std::string text(const JobQueue& q) {
+    std::lock_guard<std::mutex> lock(mu_);
+    std::string s;
+    s += "# HELP iteas_requests_total HTTP requests by route and status.\n# TYPE iteas_requests_total counter\n";
+    for (const auto& [k, v] : requests_)
+      s += "iteas_requests_total{route=\"" + k.first + "\",status=\"" + std::to_string(k.second) + "\"} " + std::to_string(v) + "\n";
+    s += "# HELP iteas_request_duration_seconds Request latency.\n# TYPE iteas_request_duration_seconds histogram\n";
+    for (const auto& [route, h] : hist_) {
+      int64_t cum = 0;
+      for (size_t i = 0; i < h.size(); ++i) {
+        cum += h[i];
+        const std::string le = i < std::size(kBuckets) ? fmt(kBuckets[i]) : "+Inf";
+        s += "iteas_request_duration_seconds_bucket{route=\"" + route + "\",le=\"" + le + "\"} " + std::to_string(cum) + "\n";
+      }
+      s += "iteas_request_duration_seconds_sum{route=\"" + route + "\"} " + fmt(sums_[route]) + "\n";
+      s += "iteas_request_duration_seconds_count{route=\"" + route + "\"} " + std::to_string(cum) + "\n";
+    }
+    s += "# HELP iteas_queue_depth Jobs waiting for a worker.\n# TYPE iteas_queue_depth gauge\niteas_queue_depth " +
+         std::to_string(q.queued()) + "\n";
+    s += "# HELP iteas_jobs_running Jobs being refined.\n# TYPE iteas_jobs_running gauge\niteas_jobs_running " +
+         std::to_string(q.running()) + "\n";
+    s += "# HELP iteas_jobs Jobs held, by status.\n# TYPE iteas_jobs gauge\n";
+    for (const auto& [state, n] : q.counts_by_state())
+      s += "iteas_jobs{status=\"" + state + "\"} " + std::to_string(n) + "\n";
+    s += "# HELP iteas_triangles_in_total Input triangles of finished jobs.\n# TYPE iteas_triangles_in_total counter\n"
+         "iteas_triangles_in_total " + std::to_string(tri_in_.load()) + "\n";
+    s += "# HELP iteas_triangles_out_total Output triangles of finished jobs.\n# TYPE iteas_triangles_out_total counter\n"
+         "iteas_triangles_out_total " + std::to_string(tri_out_.load()) + "\n";
+    return s;
+  }
+
+ private:
+  static std::string fmt(double x) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%g", x);
+    return b;
+  }
+  std::mutex mu_;
+  std::map<std::pair<std::string, int>, int64_t> requests_;
+  std::map<std::string, std::vector<int64_t>> hist_;
+  std::map<std::string, double> sums_;
+  std::atomic<int64_t> tri_in_{0}, tri_out_{0};
+};
+
+// --- helpers -------------------------------------------------------------------
+struct HttpError {
+  int status;
+  std::string code, message;
+};
+
+void send_error(httplib::Response& res, int status, const std::string& code, const std::string& message) {
+  res.status = status;
+  res.set_content(json{{"error", {{"code", code}, {"message", message}, {"status", status}}}}.dump(), "application/json");
+}
+
+int status_for(const Status& s) {
+  switch (s.kind) {
+    case ErrorKind::kBadInput: return 400;
+    case ErrorKind::kUnsupported: return 415;
+    case ErrorKind::kUnusable: return 422;
+    case ErrorKind::kTooLarge: return 413;
+    default: return 400;
+  }
+}
+
+const char* content_type_for(const std::string& format) {
+  if (format == "glb") return "model/gltf-binary";
+  if (format == "gltf") return "model/gltf+json";
+  if (format == "obj") return "model/obj";
+  if (format == "ply") return "application/ply";
+  return "application/octet-stream";
+}
+
+std::string route_of(const std::string& path) {
+  if (path.rfind("/v1/jobs/", 0) == 0) return path.size() > 16 && path.find("/result") != std::string::npos ? "/v1/jobs/{id}/result" : "/v1/jobs/{id}";
+  static const char* known[] = {"/v1/refine", "/v1/jobs", "/healthz", "/readyz", "/metrics", "/v1/openapi.yaml"};
+  for (const char* k : known) if (path == k) return k;
+  return "other";
+}
+
+std::string new_id() {
+  static std::atomic<uint64_t> counter{0};
+  thread_local std::mt19937_64 rng(std::random_device{}());
+  char b[40];
+  std::snprintf(b, sizeof b, "%016llx%04llx", static_cast<unsigned long long>(rng()),
+                static_cast<unsigned long long>(counter++ & 0xffff));
+  return b;
+}
+
+bool constant_time_equal(const std::string& a, const std::string& b) {
+  if (a.size() != b.size()) return false;
+  unsigned char d = 0;
+  for (size_t i = 0; i < a.size(); ++i) d |= static_cast<unsigned char>(a[i] ^ b[i]);
+  return d == 0;
+}
+
+thread_local Clock::time_point t_request_start;
+thread_local std::string t_request_id;
+
+}  // namespace
+
+// --- flags -----------------------------------------------------------------------
+bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, std::string* error) {
+  struct Flag {
+    const char* name;
+    std::function<bool(const std::string&)> set;
+  };
+  auto integer = [](int64_t lo, int64_t hi, auto* target) {
+    return [lo, hi, target](const std::string& v) {
+      char* end = nullptr;
+      const long long x = std::strtoll(v.c_str(), &end, 10);
+      if (v.empty() || *end || x < lo || x > hi) return false;
+      *target = static_cast<std::remove_pointer_t<decltype(target)>>(x);
+      return true;
+    };
+  };
+  const std::vector<Flag> flags = {
+      {"host", [c](const std::string& v) { c->host = v; return !v.empty(); }},
+      {"port", integer(0, 65535, &c->port)},
+      {"workers", integer(0, 256, &c->workers)},
+      {"queue", integer(1, 100000, &c->queue)},
+      {"http-threads", integer(0, 4096, &c->http_threads)},
+      {"max-upload-bytes", integer(1, int64_t(1) << 40, &c->max_upload_bytes)},
+      {"max-output-triangles", integer(1, int64_t(1) << 40, &c->max_output_triangles)},
+      {"request-timeout", integer(1, 86400, &c->request_timeout_s)},
+      {"job-ttl", integer(1, 30 * 86400, &c->job_ttl_s)},
+      {"result-bytes-cap", integer(0, int64_t(1) << 40, &c->result_bytes_cap)},
+      {"grace", integer(0, 3600, &c->grace_s)},
+      {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
+      {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
+      {"log-format", [c](const std::string& v) { c->log_format = v; return v == "text" || v == "json"; }},
+  };
+  // Environment first (ITEAS_MAX_UPLOAD_BYTES, ...), then flags.
+  for (const Flag& f : flags) {
+    std::string env = "ITEAS_";
+    for (const char* p = f.name; *p; ++p) env += *p == '-' ? '_' : char(std::toupper(static_cast<unsigned char>(*p)));
+    if (const char* v = std::getenv(env.c_str()))
+      if (!f.set(v)) { *error = "bad value for " + env; return false; }
+  }
+  for (size_t i = 0; i < args.size(); ++i) {
+    std::string name = args[i], value;
+    if (name.rfind("--", 0) != 0) { *error = "unexpected argument '" + name + "'"; return false; }
+    name = name.substr(2);
+    const size_t eq = name.find('=');
+    if (eq != std::string::npos) { value = name.substr(eq + 1); name = name.substr(0, eq); }
+    else if (i + 1 < args.size()) value = args[++i];
+    else { *error = "--" + name + " needs a value"; return false; }
+    bool found = false;
+    for (const Flag& f : flags)
+      if (name == f.name) {
+        found = true;
+        if (!f.set(value)) { *error = "bad value for --" + name; return false; }
+      }
+    if (!found) { *error = "unknown flag --" + name; return false; }
+  }
+  return true;
+}
+
+// --- the service ---------------------------------------------------------------------
+int serve(const ServerConfig& cfg) {
+  auto logger = spdlog::stdout_logger_mt("iteas");
+  if (cfg.log_format == "json")
+    logger->set_pattern(R"({"time":"%Y-%m-%dT%H:%M:%S.%e%z","level":"%l",%v})");
+  else
+    logger->set_pattern("%Y-%m-%d %H:%M:%S.%e %l %v");
+  logger->flush_on(spdlog::level::info);
+  const bool json_log = cfg.log_format == "json";
+
+  // Signals are taken by one thread with sigwait: block them everywhere first.
+  sigset_t sigs;
+  sigemptyset(&sigs);
+  sigaddset(&sigs, SIGTERM);
+  sigaddset(&sigs, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &sigs, nullptr);
+
+  const int workers = cfg.workers > 0 ? cfg.workers : hardware_threads();
+  QueueLimits limits;
+  limits.workers = workers;
+  limits.capacity = size_t(cfg.queue);
+  limits.ttl = std::chrono::seconds(cfg.job_ttl_s);
+  limits.result_bytes_cap = size_t(cfg.result_bytes_cap);
+  JobQueue queue(limits, now_ms);
+  Metrics metrics;
+  std::atomic<bool> draining{false};
+
+  httplib::Server svr;
+  // Connection threads are separate from the refinement workers, and enough
+  // that keep-alive clients cannot starve the API; each idles out after
+  // read_timeout, and a stalled upload (slowloris) is dropped by it too.
+  const int http_threads = cfg.http_threads > 0 ? cfg.http_threads : 4 * workers + 8;
+  svr.new_task_queue = [http_threads] { return new httplib::ThreadPool(size_t(http_threads)); };
+  svr.set_payload_max_length(size_t(cfg.max_upload_bytes));
+  svr.set_read_timeout(cfg.read_timeout_s, 0);
+  svr.set_write_timeout(cfg.read_timeout_s, 0);
+  svr.set_keep_alive_timeout(std::min(5, cfg.read_timeout_s));
+  svr.set_keep_alive_max_count(100);
+
+  svr.set_pre_routing_handler([&](const httplib::Request& req, httplib::Response& res) {
+    t_request_start = Clock::now();
+    t_request_id = req.has_header("X-Request-Id") ? req.get_header_value("X-Request-Id").substr(0, 64) : new_id();
+    res.set_header("X-Request-Id", t_request_id);
+    const bool open = req.path == "/healthz" || req.path == "/readyz" || req.path == "/metrics";
+    if (!cfg.api_key.empty() && !open) {
+      const std::string auth = req.get_header_value("Authorization");
+      if (!constant_time_equal(auth, "Bearer " + cfg.api_key)) {
+        res.set_header("WWW-Authenticate", "Bearer");
+        send_error(res, 401, "unauthorized", "a valid 'Authorization: Bearer <key>' header is required");
+        return httplib::Server::HandlerResponse::Handled;
+      }
+    }
+    return httplib::Server::HandlerResponse::Unhandled;
+  });
+  svr.set_logger([&](const httplib::Request& req, const httplib::Response& res) {
+    const double secs = std::chrono::duration<double>(Clock::now() - t_request_start).count();
+    metrics.observe(route_of(req.path), res.status, secs);
+    if (json_log)
+      logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{:.3f},"remote":"{}")",
+                   t_request_id, req.method, route_of(req.path), res.status, req.body.size(), res.body.size(), secs * 1000,
+                   req.remote_addr);
+    else
+      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, req.path, res.status, req.body.size(),
+                   res.body.size(), secs * 1000, req.remote_addr);
+  });
+  svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
+    std::string what = "unexpected error";
+    try { if (ep) std::rethrow_exception(ep); } catch (const std::exception& e) { what = e.what(); } catch (...) {}
+    logger->error("{} internal error: {}", t_request_id, what);
+    send_error(res, 500, "internal", "internal error");
+  });
+  svr.set_error_handler([&](const httplib::Request& req, httplib::Response& res) {
+    if (!res.body.empty()) return;  // an envelope is already there
+    if (res.status == 404) send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
+    else if (res.status == 413) send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
+    else if (res.status == 405) send_error(res, 405, "method_not_allowed", "method not allowed on " + req.path);
+    else send_error(res, res.status, "bad_request", "the request could not be read");
+  });
+
+  // Builds a job from a request: options, body (raw or multipart "mesh").
+  auto make_job = [&](const httplib::Request& req, bool listed) -> std::shared_ptr<Job> {
+    if (draining) throw HttpError{503, "draining", "the server is shutting down"};
+    std::vector<std::pair<std::string, std::string>> pairs;
+    for (const auto& [k, v] : req.params) pairs.emplace_back(k, v);
+    Options options;
+    std::string error, bad;
+    if (!parse_options(pairs, &options, &error, &bad)) throw HttpError{400, "bad_option", error};
+    if (options.refine.max_triangles > cfg.max_output_triangles) options.refine.max_triangles = cfg.max_output_triangles;
+    if (options.out.output.empty()) options.out.output = "glb";
+    options.refine.threads = 1;  // parallelism comes from the worker pool
+    auto job = std::make_shared<Job>();
+    job->id = new_id();
+    job->listed = listed;
+    std::string name;
+    const std::string type = req.get_header_value("Content-Type");
+    if (req.is_multipart_form_data()) {
+      if (!req.has_file("mesh")) throw HttpError{400, "missing_mesh", "multipart upload needs a 'mesh' file part"};
+      const httplib::MultipartFormData f = req.get_file_value("mesh");
+      job->input.assign(f.content.begin(), f.content.end());
+      name = f.filename;
+    } else {
+      const std::string base = type.substr(0, type.find(';'));
+      static const char* accepted[] = {"model/gltf-binary", "model/gltf+json", "application/octet-stream", "application/json",
+                                       "model/obj", "model/stl", "application/ply", ""};
+      bool ok = false;
+      for (const char* a : accepted) ok = ok || base == a;
+      if (!ok) throw HttpError{415, "unsupported_media_type", "Content-Type '" + base + "' is not a mesh type"};
+      job->input.assign(req.body.begin(), req.body.end());
+    }
+    if (job->input.empty()) throw HttpError{400, "empty_body", "the request has no mesh"};
+    job->request.data = job->input.data();
+    job->request.size = job->input.size();
+    job->request.name_hint = name;
+    job->request.output_format = options.out.output;
+    job->request.options = options;
+    if (sniff_format(job->request.data, job->request.size, name).empty())
+      throw HttpError{415, "unsupported_format", "the body is not a recognised mesh format (glb, gltf, drc, obj, ply, off, stl)"};
+    return job;
+  };
+  auto submit = [&](const std::shared_ptr<Job>& job, httplib::Response& res) {
+    if (!queue.submit(job)) {
+      res.set_header("Retry-After", "2");
+      throw HttpError{429, "queue_full", "the work queue is full; retry later"};
+    }
+  };
+  // One wrapper for every handler: HttpError and anything else to the envelope.
+  auto wrap = [&](auto handler) {
+    return [&, handler](const httplib::Request& req, httplib::Response& res) {
+      try {
+        handler(req, res);
+      } catch (const HttpError& e) {
+        send_error(res, e.status, e.code, e.message);
+      } catch (const std::bad_alloc&) {
+        send_error(res, 413, "too_large", "the request needs more memory than the server has");
+      }
+    };
+  };
+
+  svr.Post("/v1/refine", wrap([&](const httplib::Request& req, httplib::Response& res) {
+    auto job = make_job(req, false);
+    submit(job, res);
+    std::unique_lock<std::mutex> lock(job->mu);
+    if (!job->changed.wait_for(lock, std::chrono::seconds(cfg.request_timeout_s), [&] { return job->finished_state(); })) {
+      job->cancel = true;
+      throw HttpError{422, "timeout", "the refinement did not finish within the server's request timeout; "
+                                      "use the job API or a smaller max_triangles"};
+    }
+    if (job->state == JobState::kFailed) throw HttpError{status_for(job->error), job->error.code, job->error.message};
+    if (job->state != JobState::kDone) throw HttpError{503, "cancelled", "the job was cancelled (the server is shutting down)"};
+    metrics.triangles(job->stats["input"]["triangles"].get<int64_t>(), job->stats["output"]["triangles"].get<int64_t>());
+    res.set_header("X-IteAS-Stats", job->stats.dump());
+    res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
+                    content_type_for(job->request.output_format));
+  }));
+  svr.Post("/v1/jobs", wrap([&](const httplib::Request& req, httplib::Response& res) {
+    auto job = make_job(req, true);
+    submit(job, res);
+    res.status = 202;
+    res.set_header("Location", "/v1/jobs/" + job->id);
+    res.set_content(job->status_json().dump(), "application/json");
+  }));
+  svr.Get(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
+    auto job = queue.find(req.matches[1]);
+    if (!job) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    res.set_content(job->status_json().dump(), "application/json");
+  }));
+  svr.Get(R"(/v1/jobs/([0-9a-f]{1,64})/result)", wrap([&](const httplib::Request& req, httplib::Response& res) {
+    auto job = queue.find(req.matches[1]);
+    if (!job) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    std::lock_guard<std::mutex> lock(job->mu);
+    if (job->state == JobState::kFailed) throw HttpError{status_for(job->error), job->error.code, job->error.message};
+    if (job->state != JobState::kDone) throw HttpError{409, "not_ready", std::string("the job is ") + job_state_name(job->state)};
+    res.set_header("X-IteAS-Stats", job->stats.dump());
+    res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
+                    content_type_for(job->request.output_format));
+  }));
+  svr.Delete(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
+    const std::string id = req.matches[1];
+    if (!queue.remove(id)) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    res.set_content(json{{"id", id}, {"deleted", true}}.dump(), "application/json");
+  }));
+  svr.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
+    res.set_content(R"({"status":"ok"})", "application/json");
+  });
+  svr.Get("/readyz", [&](const httplib::Request&, httplib::Response& res) {
+    if (draining) send_error(res, 503, "draining", "the server is shutting down");
+    else res.set_content(R"({"status":"ready"})", "application/json");
+  });
+  svr.Get("/metrics", [&](const httplib::Request&, httplib::Response& res) {
+    res.set_content(metrics.text(queue), "text/plain; version=0.0.4");
+  });
+  svr.Get("/v1/openapi.yaml", [](const httplib::Request&, httplib::Response& res) {
+    res.set_content(kOpenApiYaml, "application/yaml");
+  });
+
+  int port = cfg.port;
+  if (port == 0) {
+    port = svr.bind_to_any_port(cfg.host);
+  } else if (!svr.bind_to_port(cfg.host, port)) {
+    port = -1;
+  }
+  if (port < 0) {
+    logger->error("cannot listen on {}:{}", cfg.host, cfg.port);
+    return 4;
+  }
+  logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{})" : "listening on {}:{} with {} workers",
+               cfg.host, port, workers);
+  std::thread http([&] { svr.listen_after_bind(); });
+
+  int sig = 0;
+  sigwait(&sigs, &sig);
+  logger->info(json_log ? R"("event":"draining","signal":{})" : "signal {}: draining", sig);
+  draining = true;
+  queue.drain(std::chrono::seconds(cfg.grace_s));
+  // Give waiting synchronous requests a moment to write their responses.
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  svr.stop();
+  http.join();
+  logger->info(json_log ? R"("event":"stopped")" : "stopped");
+  return 0;
+}
+
+}  // namespace iteas

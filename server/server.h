@@ -1,0 +1,34 @@
+// `iteas serve`: the HTTP API of SPEC §7 on a bounded worker pool (SPEC §8).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace iteas {
+
+struct ServerConfig {
+  std::string host = "127.0.0.1";
+  int port = 8080;
+  int workers = 0;                 // 0: all cores
+  int queue = 16;                  // jobs waiting for a worker
+  int http_threads = 0;            // connection threads; 0: 4 x workers + 8
+  int64_t max_upload_bytes = 256LL << 20;
+  int64_t max_output_triangles = 5000000;
+  int request_timeout_s = 300;     // synchronous requests
+  int job_ttl_s = 600;
+  int64_t result_bytes_cap = 1LL << 30;
+  int grace_s = 30;                // SIGTERM: time running work gets to finish
+  int read_timeout_s = 10;         // a stalled client is dropped after this
+  std::string api_key;             // empty: no authentication
+  std::string log_format = "text"; // text or json
+};
+
+// Parses `--name value` flags, each with an ITEAS_NAME environment
+// equivalent (flags win). Returns false with |error| set on a bad flag.
+bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* config, std::string* error);
+
+// Runs until SIGTERM/SIGINT, then drains. Returns the process exit code.
+int serve(const ServerConfig& config);
+
+}  // namespace iteas

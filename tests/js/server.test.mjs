@@ -1,0 +1,254 @@
+// Integration tests of `iteas serve`: the real binary on a loopback port
+// (issue 4 points 1-4). All traffic goes to 127.0.0.1 and every loop is bounded.
+import { test, before, after } from 'node:test';
+import assert from 'node:assert/strict';
+import { spawn, spawnSync } from 'node:child_process';
+import fs from 'node:fs';
+import net from 'node:net';
+import path from 'node:path';
+import Ajv2020 from 'ajv/dist/2020.js';
+import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes, checkGltfOutput } from './check.mjs';
+
+const only = process.env.ITEAS_JS_ONLY || '';
+const maybe = (name) => (only && !name.includes(only) ? test.skip : test);
+
+// --- a server process -------------------------------------------------------
+async function startServer(flags = [], env = {}) {
+  const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
+  let out = '';
+  const port = await new Promise((resolve, reject) => {
+    const timer = setTimeout(() => reject(new Error('server did not start: ' + out)), 10000);
+    proc.stdout.on('data', (d) => {
+      out += d;
+      const m = out.match(/listening on [^:]+:(\d+)/);
+      if (m) { clearTimeout(timer); resolve(Number(m[1])); }
+    });
+    proc.on('exit', (code) => { clearTimeout(timer); reject(new Error(`server exited ${code}: ${out}`)); });
+  });
+  proc.stdout.on('data', (d) => { out += d; });
+  return { proc, port, url: `http://127.0.0.1:${port}`, log: () => out };
+}
+
+async function stopServer(s) {
+  if (s.proc.exitCode !== null) return s.proc.exitCode;
+  const exited = new Promise((resolve) => s.proc.on('exit', (code, signal) => resolve(code ?? signal)));
+  s.proc.kill('SIGTERM');
+  return exited;
+}
+
+const ajv = new Ajv2020({ strict: false, allErrors: true });
+const statsSchema = JSON.parse(fs.readFileSync(path.join(SOURCE_DIR, 'proto/stats.schema.json'), 'utf8'));
+const jobSchema = JSON.parse(fs.readFileSync(path.join(SOURCE_DIR, 'proto/job.schema.json'), 'utf8'));
+const errorSchema = JSON.parse(fs.readFileSync(path.join(SOURCE_DIR, 'proto/error.schema.json'), 'utf8'));
+ajv.addSchema(statsSchema, 'stats.schema.json');
+const validateStats = ajv.compile(statsSchema);
+const validateJob = ajv.compile(jobSchema);
+const validateError = ajv.compile(errorSchema);
+
+function assertSchema(validate, value, what) {
+  assert.ok(validate(value), `${what}: ${JSON.stringify(validate.errors?.slice(0, 3))}`);
+}
+
+async function expectError(res, status, code) {
+  assert.equal(res.status, status, `expected ${status}, got ${res.status}`);
+  const body = await res.json();
+  assertSchema(validateError, body, 'error envelope');
+  assert.equal(body.error.status, status);
+  if (code) assert.equal(body.error.code, code);
+  return body;
+}
+
+const withoutTimings = (s) => {
+  const c = structuredClone(s);
+  delete c.timings_ms;
+  delete c.output.bytes;
+  for (const l of c.levels) delete l.ms;
+  return c;
+};
+
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+let server;
+before(async () => { server = await startServer(['--workers', '2', '--queue', '64', '--max-upload-bytes', String(8 << 20), '--read-timeout', '2']); });
+after(async () => { if (server) await stopServer(server); });
+
+function meshesToSend() {
+  const files = listFiles(DATA);
+  if (HAVE_CORPUS) for (const s of ['gltf', 'gltf-draco', 'drc', 'classic-converted']) files.push(...listFiles(path.join(CORPUS, s)));
+  return files.filter((f) => fs.statSync(f).size <= 8 << 20);
+}
+
+maybe('api')('every mesh through the sync and the job API: valid output, statistics match the schema and each other', async (t) => {
+  for (const file of meshesToSend()) {
+    await t.test(path.basename(file), async () => {
+      const body = fs.readFileSync(file);
+      const query = 'levels=2&max_triangles=300000';
+      const res = await fetch(`${server.url}/v1/refine?${query}`, { method: 'POST', body, headers: { 'Content-Type': 'application/octet-stream' } });
+      if (res.status === 422) {  // point clouds and the like
+        await expectError(res, 422);
+        return;
+      }
+      assert.equal(res.status, 200, await res.clone().text());
+      const stats = JSON.parse(res.headers.get('x-iteas-stats'));
+      assertSchema(validateStats, stats, 'statistics');
+      const out = path.join(tmp, path.basename(file) + '.srv.glb');
+      fs.writeFileSync(out, Buffer.from(await res.arrayBuffer()));
+      const facts = await checkGltfOutput(out);
+      assert.equal(facts.triangles, stats.output.triangles);
+      assert.equal(facts.vertices, stats.output.vertices);
+      // The same through the job API.
+      const created = await fetch(`${server.url}/v1/jobs?${query}`, { method: 'POST', body, headers: { 'Content-Type': 'application/octet-stream' } });
+      assert.equal(created.status, 202);
+      const loc = created.headers.get('location');
+      assert.match(loc, /^\/v1\/jobs\/[0-9a-f]+$/);
+      assertSchema(validateJob, await created.json(), 'job');
+      let status;
+      for (let i = 0; i < 600; i++) {
+        status = await (await fetch(server.url + loc)).json();
+        assertSchema(validateJob, status, 'job');
+        if (['done', 'failed', 'cancelled'].includes(status.status)) break;
+        await sleep(50);
+      }
+      assert.equal(status.status, 'done');
+      assert.deepEqual(withoutTimings(status.statistics), withoutTimings(stats));
+      const result = await fetch(`${server.url}${loc}/result`);
+      assert.equal(result.status, 200);
+      assert.equal(Buffer.from(await result.arrayBuffer()).length, status.statistics.output.bytes);
+      assert.equal((await fetch(server.url + loc, { method: 'DELETE' })).status, 200);
+      assert.equal((await fetch(server.url + loc)).status, 404);
+    });
+  }
+});
+
+maybe('errors')('bad requests get their documented 4xx and envelope, and the server stays healthy', async (t) => {
+  const post = (query, body, type = 'application/octet-stream') =>
+    fetch(`${server.url}/v1/refine${query}`, { method: 'POST', body, headers: { 'Content-Type': type } });
+  const box = fs.readFileSync(path.join(DATA, 'Box.glb'));
+  await t.test('broken files', async () => {
+    for (const file of nastyMeshes()) {
+      const res = await post('', fs.readFileSync(file));
+      if (res.status === 200) { assert.ok(JSON.parse(res.headers.get('x-iteas-stats')).warnings); await res.arrayBuffer(); continue; }
+      assert.ok([400, 413, 415, 422].includes(res.status), `${path.basename(file)}: ${res.status}`);
+      await expectError(res, res.status);
+    }
+  });
+  await t.test('truncated and bit-flipped uploads', async () => {
+    for (let n = 0; n < box.length; n += 97) {
+      const res = await post('', box.subarray(0, n));
+      assert.ok(res.status < 500, `prefix ${n}: ${res.status}`);
+      await res.arrayBuffer();
+    }
+    let seed = 7;
+    for (let i = 0; i < 60; i++) {
+      const x = Buffer.from(box);
+      for (let k = 0; k < 3; k++) { seed = (seed * 1103515245 + 12345) % 2147483648; x[seed % x.length] ^= 1 << (seed % 8); }
+      const res = await post('', x);
+      assert.ok(res.status < 500, `flip ${i}: ${res.status}`);
+      await res.arrayBuffer();
+    }
+  });
+  await t.test('content types, garbage, empty', async () => {
+    await expectError(await post('', box, 'text/html'), 415, 'unsupported_media_type');
+    await expectError(await post('', Buffer.from('garbage garbage garbage garbage')), 415);
+    await expectError(await post('', Buffer.alloc(0)), 400, 'empty_body');
+    await expectError(await post('', Buffer.from('{"asset": {"version": "2.0"}, "meshes": [')), 400, 'bad_json');
+  });
+  await t.test('bad and unknown options', async () => {
+    for (const q of ['?levels=0', '?levels=abc', '?mode=loop', '?bogus=1', '?tension=1', '?threshold=p200', '?mode=fixed']) {
+      const body = await expectError(await post(q, box), 400, 'bad_option');
+      assert.match(body.error.message, /option '/);
+    }
+  });
+  await t.test('absurd declared counts', async () => {
+    const gltf = JSON.stringify({ asset: { version: '2.0' }, accessors: [{ componentType: 5126, count: 2147483647, type: 'VEC3', min: [0, 0, 0], max: [1, 1, 1] }], meshes: [{ primitives: [{ attributes: { POSITION: 0 } }] }] });
+    const res = await post('', Buffer.from(gltf), 'model/gltf+json');
+    assert.ok([400, 413, 422].includes(res.status));
+    await expectError(res, res.status);
+  });
+  await t.test('buffers that point outside are refused and nothing is read', async () => {
+    for (const uri of ['file:///etc/passwd', '../secret.bin', '/etc/passwd', 'http://127.0.0.1:1/x']) {
+      const gltf = JSON.stringify({ asset: { version: '2.0' }, buffers: [{ uri, byteLength: 36 }], bufferViews: [{ buffer: 0, byteLength: 36 }], accessors: [{ bufferView: 0, componentType: 5126, count: 3, type: 'VEC3', min: [0, 0, 0], max: [1, 1, 0] }], meshes: [{ primitives: [{ attributes: { POSITION: 0 } }] }] });
+      await expectError(await post('', Buffer.from(gltf), 'model/gltf+json'), 400, 'external_uri');
+    }
+  });
+  await t.test('an upload over the limit is refused before it is read', async () => {
+    const res = await post('', Buffer.alloc((8 << 20) + 1, 1));
+    assert.equal(res.status, 413);
+  });
+  await t.test('unknown routes and jobs', async () => {
+    await expectError(await fetch(`${server.url}/v1/nope`), 404);
+    await expectError(await fetch(`${server.url}/v1/jobs/abc123`), 404, 'job_not_found');
+    await expectError(await fetch(`${server.url}/v1/jobs/abc123/result`), 404, 'job_not_found');
+  });
+  await t.test('a client that disconnects mid-upload, and one that stalls (slowloris)', async () => {
+    const raw = (payload, keepOpenMs) => new Promise((resolve) => {
+      const sock = net.connect(server.port, '127.0.0.1', () => {
+        sock.write(payload);
+        setTimeout(() => { sock.destroy(); resolve(); }, keepOpenMs);
+      });
+      sock.on('error', () => resolve());
+    });
+    const header = `POST /v1/refine HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/octet-stream\r\nContent-Length: ${box.length}\r\n\r\n`;
+    await raw(header + box.subarray(0, 100).toString('latin1'), 10);  // disconnect mid-upload
+    // Twenty stalled connections that never finish their headers.
+    const stalled = Array.from({ length: 20 }, () => raw('POST /v1/refine HTTP/1.1\r\nHost: x\r\n', 3000));
+    await sleep(200);
+    const t0 = Date.now();
+    const health = await fetch(`${server.url}/healthz`);
+    assert.equal(health.status, 200);
+    assert.ok(Date.now() - t0 < 2500, 'served while stalled clients hold connections');
+    await Promise.all(stalled);
+  });
+  assert.equal((await fetch(`${server.url}/healthz`)).status, 200);
+  assert.equal((await fetch(`${server.url}/readyz`)).status, 200);
+  const metrics = await (await fetch(`${server.url}/metrics`)).text();
+  assert.match(metrics, /iteas_requests_total\{route="\/v1\/refine",status="400"\}/);
+  assert.match(metrics, /iteas_request_duration_seconds_bucket/);
+  assert.match(metrics, /iteas_queue_depth \d+/);
+});
+
+maybe('auth')('an API key is required when configured', async () => {
+  const s = await startServer(['--workers', '1'], { ITEAS_API_KEY: 'sekret' });
+  try {
+    const box = fs.readFileSync(path.join(DATA, 'Box.glb'));
+    await expectError(await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box }), 401, 'unauthorized');
+    await expectError(await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box, headers: { Authorization: 'Bearer wrong' } }), 401);
+    const ok = await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box, headers: { Authorization: 'Bearer sekret', 'Content-Type': 'model/gltf-binary' } });
+    assert.equal(ok.status, 200);
+    assert.equal((await fetch(`${s.url}/healthz`)).status, 200);
+  } finally { assert.equal(await stopServer(s), 0); }
+});
+
+maybe('backpressure')('a full queue answers 429 with Retry-After; SIGTERM drains and exits 0', async () => {
+  const s = await startServer(['--workers', '1', '--queue', '1', '--grace', '20']);
+  const bunny = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  const send = () => fetch(`${s.url}/v1/jobs?mode=uniform&levels=4&compression=none`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
+  const responses = [];
+  for (let i = 0; i < 6; i++) responses.push(await send());
+  const codes = responses.map((r) => r.status);
+  assert.ok(codes.includes(202));
+  const busy = responses.find((r) => r.status === 429);
+  assert.ok(busy, `codes ${codes}`);
+  assert.ok(Number(busy.headers.get('retry-after')) > 0);
+  await expectError(busy, 429, 'queue_full');
+  // SIGTERM while a job runs: readyz turns 503, the running job finishes, exit 0.
+  const running = responses.find((r) => r.status === 202);
+  const loc = running.headers.get('location');
+  const exited = new Promise((resolve) => s.proc.on('exit', (code) => resolve(code)));
+  s.proc.kill('SIGTERM');
+  await sleep(100);
+  const ready = await fetch(`${s.url}/readyz`).catch(() => null);
+  if (ready) assert.equal(ready.status, 503);
+  const status = await fetch(s.url + loc).then((r) => r.json()).catch(() => null);
+  if (status) assert.ok(['running', 'done', 'queued'].includes(status.status));
+  assert.equal(await exited, 0);
+  assert.match(s.log(), /draining/);
+});
+
+maybe('openapi')('the OpenAPI document passes a standard linter and is served', async () => {
+  const lint = spawnSync(path.join(path.dirname(new URL(import.meta.url).pathname), 'node_modules/.bin/redocly'),
+    ['lint', '--config', path.join(SOURCE_DIR, 'proto/redocly.yaml'), path.join(SOURCE_DIR, 'proto/openapi.yaml')], { encoding: 'utf8' });
+  assert.equal(lint.status, 0, lint.stdout + lint.stderr);
+  const served = await (await fetch(`${server.url}/v1/openapi.yaml`)).text();
+  assert.equal(served, fs.readFileSync(path.join(SOURCE_DIR, 'proto/openapi.yaml'), 'utf8'));
+});
