@@ -238,13 +238,15 @@ int serve(const ServerConfig& cfg) {
   // Connection threads are separate from the refinement workers, and enough
   // that keep-alive clients cannot starve the API; each idles out after
   // read_timeout, and a stalled upload (slowloris) is dropped by it too.
-  const int http_threads = cfg.http_threads > 0 ? cfg.http_threads : 4 * workers + 8;
+  const int http_threads = cfg.http_threads > 0 ? cfg.http_threads : std::max(64, 8 * workers);
   svr.new_task_queue = [http_threads] { return new httplib::ThreadPool(size_t(http_threads)); };
   svr.set_payload_max_length(size_t(cfg.max_upload_bytes));
   svr.set_read_timeout(cfg.read_timeout_s, 0);
   svr.set_write_timeout(cfg.read_timeout_s, 0);
-  svr.set_keep_alive_timeout(std::min(5, cfg.read_timeout_s));
-  svr.set_keep_alive_max_count(100);
+  // A keep-alive connection holds its thread: give it back after a few
+  // requests or two idle seconds, so more clients than threads still take turns.
+  svr.set_keep_alive_timeout(std::min(2, cfg.read_timeout_s));
+  svr.set_keep_alive_max_count(8);
 
   svr.set_pre_routing_handler([&](const httplib::Request& req, httplib::Response& res) {
     t_request_start = Clock::now();

@@ -12,7 +12,7 @@ struct ServerConfig {
   int port = 8080;
   int workers = 0;                 // 0: all cores
   int queue = 16;                  // jobs waiting for a worker
-  int http_threads = 0;            // connection threads; 0: 4 x workers + 8
+  int http_threads = 0;            // connection threads; 0: max(64, 8 x workers)
   int64_t max_upload_bytes = 256LL << 20;
   int64_t max_output_triangles = 5000000;
   int request_timeout_s = 300;     // synchronous requests
