@@ -37,7 +37,9 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
         c = s;
       }
       out.valence[v] = closed ? faces : faces + 1;
-      out.complete[v] = closed && !has_sharp;
+      // The extraordinary rules need a ring of 3 or more (a closed fan of two
+      // faces, from a doubled triangle, would get weights that do not sum to 1).
+      out.complete[v] = closed && !has_sharp && faces >= 3;
     }
   });
 }

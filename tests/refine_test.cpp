@@ -220,3 +220,30 @@ TEST(Refine, CancellationIsHonoured) {
 
 }  // namespace
 }  // namespace iteas
+
+namespace iteas {
+namespace {
+
+// A doubled triangle (the same three vertices, both orientations) is a closed
+// two-face "pillow": its vertices have valence 2, where the extraordinary
+// weights would not sum to one. Found on the Stanford dragon (issue 5).
+TEST(Refine, DoubledTrianglesStayBounded) {
+  Mesh m = test::icosphere(1);
+  const int32_t base = m.num_vertices();
+  for (float x : {10.0f, 0.0f, 0.0f, 11.0f, 0.0f, 0.0f, 10.0f, 1.0f, 0.0f}) m.positions.push_back(x);
+  for (int32_t v : {base, base + 1, base + 2, base, base + 2, base + 1}) m.corner_vertex.push_back(v);
+  m.face_group.assign(m.num_faces(), 0);
+  m.materialize();
+  const Aabb box = bounding_box(m);
+  for (Mode mode : {Mode::kUniform, Mode::kIteas}) {
+    const Mesh out = refined(m, opts(mode, 2));
+    for (int32_t v = 0; v < out.num_vertices(); ++v)
+      for (int k = 0; k < 3; ++k) {
+        ASSERT_GE(out.positions[3 * v + k], box.lo[k] - 0.1f * float(box.diagonal())) << "vertex " << v;
+        ASSERT_LE(out.positions[3 * v + k], box.hi[k] + 0.1f * float(box.diagonal())) << "vertex " << v;
+      }
+  }
+}
+
+}  // namespace
+}  // namespace iteas
