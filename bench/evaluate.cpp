@@ -109,10 +109,13 @@ int main(int argc, char** argv) {
       {"bunny", "classic/bunny.off", "(bunny)"},
       {"fertility", "classic/fertility.off", "(fertility)"},
   };
-  const std::vector<double> fixed_thresholds = {5, 10, 20, 30};
+  const std::vector<double> fixed_thresholds = {2, 3, 5, 10, 20, 30};
   std::ostringstream summary;
   summary << "| object (thesis) | input tris | level | IteAS tris | IteAS Hausdorff % | best fixed reaching it | its tris | triangles saved |\n"
           << "|---|---:|---:|---:|---:|---|---:|---:|\n";
+  std::ostringstream summary_rms;
+  summary_rms << "| object (thesis) | level | IteAS tris | IteAS RMS % | best fixed reaching it | its tris | triangles saved |\n"
+              << "|---|---:|---:|---:|---|---:|---:|\n";
   std::ostringstream defaults;
   defaults << "| object | closed | uniform L3 tris | IteAS defaults tris | ratio | levels | stopped by | Hausdorff % vs uniform L3 | RMS % | meets (<= 0.5 %, <= 1/2) |\n"
            << "|---|---|---:|---:|---:|---:|---|---:|---:|---|\n";
@@ -215,6 +218,23 @@ int main(int argc, char** argv) {
                     input.num_faces(), level, (long long)it->triangles, it->hausdorff, best->method.c_str(), reached ? "" : " *",
                     (long long)best->triangles, pct(double(it->triangles), double(best->triangles)).c_str());
       summary << line;
+      // The same matched by RMS deviation, which weighs the whole surface
+      // rather than its single worst point.
+      const Run* best_rms = nullptr;
+      bool reached_rms = false;
+      for (const Run& r : runs) {
+        if (r.level != level || r.method.rfind("fixed", 0) != 0) continue;
+        if (r.rms <= it->rms + 1e-12) {
+          if (!reached_rms || r.triangles < best_rms->triangles) best_rms = &r;
+          reached_rms = true;
+        } else if (!reached_rms && (!best_rms || r.rms < best_rms->rms)) {
+          best_rms = &r;
+        }
+      }
+      std::snprintf(line, sizeof line, "| %s (%s) | %d | %lld | %.4f | %s%s | %lld | %s |\n", obj.name.c_str(), obj.thesis.c_str(),
+                    level, (long long)it->triangles, it->rms, best_rms->method.c_str(), reached_rms ? "" : " *",
+                    (long long)best_rms->triangles, pct(double(it->triangles), double(best_rms->triangles)).c_str());
+      summary_rms << line;
     }
     // IteAS at its defaults (up to 6 levels) against uniform level 3.
     if (max_level >= 3) {
@@ -240,7 +260,10 @@ int main(int argc, char** argv) {
        << "plot for [i=0:" << by_method.size() - 1 << "] '" << obj.name << ".dat' index i using 1:2 with linespoints title columnheader(1)\n";
   }
   std::ofstream s(out_dir + "/summary.md");
-  s << "## IteAS against the best pre-defined threshold at equal or lower deviation\n\n" << summary.str()
+  s << "## IteAS against the best pre-defined threshold at equal or lower deviation\n\n"
+    << "Deviation from the uniform surface at the same level; `*`: no pre-defined threshold reaches IteAS's deviation "
+       "(the closest is shown, with fewer triangles and a larger deviation).\n\n### Matched by Hausdorff distance\n\n"
+    << summary.str() << "\n### Matched by RMS distance\n\n" << summary_rms.str()
     << "\n## IteAS at its defaults against uniform level 3\n\n" << defaults.str();
   return 0;
 }
