@@ -231,10 +231,26 @@ maybe('backpressure')('a full queue answers 429 with Retry-After; SIGTERM drains
   assert.ok(busy, `codes ${codes}`);
   assert.ok(Number(busy.headers.get('retry-after')) > 0);
   await expectError(busy, 429, 'queue_full');
-  // SIGTERM while a job runs: readyz turns 503, the running job finishes, exit 0.
+  // SIGTERM while a job runs: readyz turns 503, the running job finishes, exit 0,
+  // and a synchronous request in flight gets a whole response, never a cut one.
   const running = responses.find((r) => r.status === 202);
   const loc = running.headers.get('location');
   const exited = new Promise((resolve) => s.proc.on('exit', (code) => resolve(code)));
+  const s2 = await startServer(['--workers', '1', '--grace', '20']);
+  const inflight = fetch(`${s2.url}/v1/refine?mode=uniform&levels=4&compression=none`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
+  await sleep(150);
+  const exited2 = new Promise((resolve) => s2.proc.on('exit', (code) => resolve(code)));
+  s2.proc.kill('SIGTERM');
+  const done = await inflight;
+  const bytes = Buffer.from(await done.arrayBuffer());
+  if (done.status === 200) {
+    const stats = JSON.parse(done.headers.get('x-iteas-stats'));
+    assert.equal(bytes.length, stats.output.bytes, 'the whole mesh arrived');
+    assert.equal(bytes.readUInt32LE(8), bytes.length, 'GLB length field matches');
+  } else {
+    assertSchema(validateError, JSON.parse(bytes.toString('utf8')), 'error envelope');
+  }
+  assert.equal(await exited2, 0);
   s.proc.kill('SIGTERM');
   await sleep(100);
   const ready = await fetch(`${s.url}/readyz`).catch(() => null);
