@@ -11,6 +11,7 @@
 #include <draco/io/ply_decoder.h>
 #include <draco/mesh/mesh.h>
 
+#include "io/container.h"
 #include "io/document.h"
 #include "io/draco_codec.h"
 
@@ -38,22 +39,14 @@ Status slot_from_geometry(DecodedGeometry& g, const std::string& name, Document*
     ch.kind = a.semantic == "NORMAL" ? ChannelKind::kNormal : ChannelKind::kLinear;
     m.channels.push_back(std::move(ch));
   }
-  struct Key { uint32_t b[3]; bool operator==(const Key& o) const { return std::memcmp(b, o.b, 12) == 0; } };
-  struct Hash { size_t operator()(const Key& k) const { return (size_t(k.b[0]) * 73856093u) ^ (size_t(k.b[1]) * 19349663u) ^ (size_t(k.b[2]) * 83492791u); } };
-  std::unordered_map<Key, int32_t, Hash> weld;
+  Welder weld;
   std::vector<int32_t> wedge(size_t(g.points), -1);
   for (size_t i = 0; i < g.faces.size(); ++i) {
     const int32_t p = g.faces[i];
     if (wedge[p] < 0) {
-      Key key;
-      for (int k = 0; k < 3; ++k) {
-        float x = pos->data[3 * size_t(p) + k];
-        if (x == 0.0f) x = 0.0f;
-        std::memcpy(&key.b[k], &x, 4);
-      }
-      auto [it, inserted] = weld.emplace(key, m.num_vertices());
+      const auto [vertex, inserted] = weld.weld(&pos->data[3 * size_t(p)], m.num_vertices());
       if (inserted) for (int k = 0; k < 3; ++k) m.positions.push_back(pos->data[3 * size_t(p) + k]);
-      const int32_t w = m.add_wedge(it->second);
+      const int32_t w = m.add_wedge(vertex);
       size_t ci = 0;
       for (const DecodedAttribute& a : g.attributes) {
         if (a.semantic == "POSITION") continue;

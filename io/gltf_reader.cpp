@@ -10,6 +10,7 @@
 #include <tiny_gltf.h>
 
 #include "io/document.h"
+#include "io/container.h"
 #include "io/draco_codec.h"
 
 namespace iteas {
@@ -333,16 +334,6 @@ Status load_primitive(const tinygltf::Model& m, const nlohmann::json& jprim, con
   return Status::Ok();
 }
 
-struct PosKey {
-  std::array<uint32_t, 3> b;
-  bool operator==(const PosKey& o) const { return b == o.b; }
-};
-struct PosHash {
-  size_t operator()(const PosKey& k) const {
-    return (size_t(k.b[0]) * 73856093u) ^ (size_t(k.b[1]) * 19349663u) ^ (size_t(k.b[2]) * 83492791u);
-  }
-};
-
 }  // namespace
 
 Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits& limits, Document* doc) {
@@ -392,19 +383,7 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
   bool ok;
   const std::string jt_text = jt.dump();
   if (binary) {
-    std::vector<uint8_t> glb;
-    const uint32_t json_len = uint32_t((jt_text.size() + 3) & ~size_t(3));
-    const uint32_t bin_len = uint32_t((bin_size + 3) & ~size_t(3));
-    const uint32_t total = 12 + 8 + json_len + (bin ? 8 + bin_len : 0);
-    glb.resize(total, 0);
-    auto put = [&](size_t at, uint32_t v) { std::memcpy(&glb[at], &v, 4); };
-    put(0, kGlbMagic); put(4, 2); put(8, total); put(12, json_len); put(16, kChunkJson);
-    std::memcpy(&glb[20], jt_text.data(), jt_text.size());
-    for (size_t i = jt_text.size(); i < json_len; ++i) glb[20 + i] = ' ';
-    if (bin) {
-      put(20 + json_len, bin_len); put(24 + json_len, kChunkBin);
-      if (bin_size) std::memcpy(&glb[28 + json_len], bin, bin_size);
-    }
+    const std::vector<uint8_t> glb = pack_glb(jt_text, bin, bin_size);
     ok = loader.LoadBinaryFromMemory(&model, &err, &warn, glb.data(), unsigned(glb.size()), "");
   } else {
     ok = loader.LoadASCIIFromString(&model, &err, &warn, jt_text.c_str(), unsigned(jt_text.size()), "");
@@ -426,7 +405,7 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
     slot.gltf_mesh = int(mi);
     slot.name = tm.name;
     Mesh& mesh = slot.mesh;
-    std::unordered_map<PosKey, int32_t, PosHash> weld;
+    Welder weld;
     std::map<std::string, int> channel_of;
     for (size_t pi = 0; pi < tm.primitives.size(); ++pi) {
       const tinygltf::Primitive& p = tm.primitives[pi];
@@ -484,20 +463,14 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
       for (size_t t = 0; t < prim.tris.size(); ++t) {
         const uint32_t pv = prim.tris[t];
         if (wedge_of[pv] < 0) {
-          PosKey key;
-          for (int k = 0; k < 3; ++k) {
-            float x = prim.pos[3 * size_t(pv) + k];
-            if (x == 0.0f) x = 0.0f;  // -0 welds with +0
-            std::memcpy(&key.b[k], &x, 4);
-          }
-          auto [it, inserted] = weld.emplace(key, mesh.num_vertices());
+          const auto [vertex, inserted] = weld.weld(&prim.pos[3 * size_t(pv)], mesh.num_vertices());
           if (inserted) {
             for (int k = 0; k < 3; ++k) mesh.positions.push_back(prim.pos[3 * size_t(pv) + k]);
             for (size_t tt = 0; tt < mesh.vertex_channels.size(); ++tt)
               for (int k = 0; k < 3; ++k)
                 mesh.vertex_channels[tt].data.push_back(tt < prim.target_pos.size() ? prim.target_pos[tt][3 * size_t(pv) + k] : 0.0f);
           }
-          const int32_t w = mesh.add_wedge(it->second);
+          const int32_t w = mesh.add_wedge(vertex);
           for (size_t a = 0; a < prim.attrs.size(); ++a) {
             Channel& ch = mesh.channels[chan[a]];
             const std::vector<float>& src = prim.attrs[a].second.second;

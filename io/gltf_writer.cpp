@@ -8,6 +8,7 @@
 #include <set>
 
 #include "io/document.h"
+#include "io/container.h"
 #include "io/draco_codec.h"
 
 namespace iteas {
@@ -441,18 +442,7 @@ Status write_gltf(const Document& doc, const OutputOptions& opt, bool binary, co
     out->assign(text.begin(), text.end());
     return Status::Ok();
   }
-  const uint32_t json_len = uint32_t((text.size() + 3) & ~size_t(3));
-  const uint32_t total = 12 + 8 + json_len + (bin.empty() ? 0 : 8 + uint32_t(bin.size()));
-  out->resize(total, 0);
-  auto put = [&](size_t at, uint32_t v) { std::memcpy(out->data() + at, &v, 4); };
-  put(0, 0x46546C67); put(4, 2); put(8, total); put(12, json_len); put(16, 0x4E4F534A);
-  std::memcpy(out->data() + 20, text.data(), text.size());
-  for (size_t i = text.size(); i < json_len; ++i) (*out)[20 + i] = ' ';
-  if (!bin.empty()) {
-    put(20 + json_len, uint32_t(bin.size()));
-    put(24 + json_len, 0x004E4942);
-    std::memcpy(out->data() + 28 + json_len, bin.data(), bin.size());
-  }
+  *out = pack_glb(text, bin.empty() ? nullptr : bin.data(), bin.size());
   return Status::Ok();
 }
 
