@@ -84,6 +84,24 @@ void measure(Run& r, const Mesh& m, const Mesh& ref, const eval::Bvh& ref_bvh, d
   r.rms = 100.0 * d.rms / diag;
 }
 
+// The "original" for an IteAS run: the pre-defined threshold with the fewest
+// triangles whose deviation (|metric|) at the same level is at most |target|;
+// when none reaches it, the one with the smallest deviation (second = false).
+std::pair<const Run*, bool> best_fixed(const std::vector<Run>& runs, int level, double target, double Run::*metric) {
+  const Run* best = nullptr;
+  bool reached = false;
+  for (const Run& r : runs) {
+    if (r.level != level || r.method.rfind("fixed", 0) != 0) continue;
+    if (r.*metric <= target + 1e-12) {
+      if (!reached || r.triangles < best->triangles) best = &r;
+      reached = true;
+    } else if (!reached && (!best || r.*metric < best->*metric)) {
+      best = &r;
+    }
+  }
+  return {best, reached};
+}
+
 std::string pct(double better, double worse) {
   if (worse <= 0) return "–";
   char b[32];
@@ -195,17 +213,7 @@ int main(int argc, char** argv) {
     for (int level = 1; level <= max_level; ++level) {
       const Run* it = nullptr;
       for (const Run& r : runs) if (r.level == level && r.method == "iteas") it = &r;
-      const Run* best = nullptr;
-      bool reached = false;
-      for (const Run& r : runs) {
-        if (r.level != level || r.method.rfind("fixed", 0) != 0) continue;
-        if (r.hausdorff <= it->hausdorff + 1e-12) {
-          if (!reached || r.triangles < best->triangles) best = &r;
-          reached = true;
-        } else if (!reached && (!best || r.hausdorff < best->hausdorff)) {
-          best = &r;
-        }
-      }
+      const auto [best, reached] = best_fixed(runs, level, it->hausdorff, &Run::hausdorff);
       char line[512];
       std::snprintf(line, sizeof line, "| %d | %s%s | %lld | %.0f | %lld | %lld | %.0f | %lld | %s | %s | %s |\n", level,
                     best->method.c_str(), reached ? "" : " *", (long long)best->triangles, best->peak_bytes / 1024.0,
@@ -220,17 +228,7 @@ int main(int argc, char** argv) {
       summary << line;
       // The same matched by RMS deviation, which weighs the whole surface
       // rather than its single worst point.
-      const Run* best_rms = nullptr;
-      bool reached_rms = false;
-      for (const Run& r : runs) {
-        if (r.level != level || r.method.rfind("fixed", 0) != 0) continue;
-        if (r.rms <= it->rms + 1e-12) {
-          if (!reached_rms || r.triangles < best_rms->triangles) best_rms = &r;
-          reached_rms = true;
-        } else if (!reached_rms && (!best_rms || r.rms < best_rms->rms)) {
-          best_rms = &r;
-        }
-      }
+      const auto [best_rms, reached_rms] = best_fixed(runs, level, it->rms, &Run::rms);
       std::snprintf(line, sizeof line, "| %s (%s) | %d | %lld | %.4f | %s%s | %lld | %s |\n", obj.name.c_str(), obj.thesis.c_str(),
                     level, (long long)it->triangles, it->rms, best_rms->method.c_str(), reached_rms ? "" : " *",
                     (long long)best_rms->triangles, pct(double(it->triangles), double(best_rms->triangles)).c_str());
