@@ -74,7 +74,7 @@ after(async () => { if (server) await stopServer(server); });
 
 function meshesToSend() {
   const files = listFiles(DATA);
-  if (HAVE_CORPUS) for (const s of ['gltf', 'gltf-draco', 'drc', 'classic-converted']) files.push(...listFiles(path.join(CORPUS, s)));
+  if (HAVE_CORPUS) for (const s of ['gltf', 'gltf-draco', 'drc', 'classic', 'classic-converted']) files.push(...listFiles(path.join(CORPUS, s)));
   return files.filter((f) => fs.statSync(f).size <= 8 << 20);
 }
 
