@@ -252,15 +252,9 @@ int serve(const ServerConfig& cfg) {
     t_request_start = Clock::now();
     t_request_id = req.has_header("X-Request-Id") ? req.get_header_value("X-Request-Id").substr(0, 64) : new_id();
     res.set_header("X-Request-Id", t_request_id);
-    const bool open = req.path == "/healthz" || req.path == "/readyz" || req.path == "/metrics";
-    if (!cfg.api_key.empty() && !open) {
-      const std::string auth = req.get_header_value("Authorization");
-      if (!constant_time_equal(auth, "Bearer " + cfg.api_key)) {
-        res.set_header("WWW-Authenticate", "Bearer");
-        send_error(res, 401, "unauthorized", "a valid 'Authorization: Bearer <key>' header is required");
-        return httplib::Server::HandlerResponse::Handled;
-      }
-    }
+    // Nothing is answered here: this runs before httplib reads the body, and an
+    // early answer would leave the body on a keep-alive connection, where it
+    // would be read as the next request. Authentication is in wrap().
     return httplib::Server::HandlerResponse::Unhandled;
   });
   svr.set_logger([&](const httplib::Request& req, const httplib::Response& res) {
@@ -338,6 +332,10 @@ int serve(const ServerConfig& cfg) {
   auto wrap = [&](auto handler) {
     return [&, handler](const httplib::Request& req, httplib::Response& res) {
       try {
+        if (!cfg.api_key.empty() && !constant_time_equal(req.get_header_value("Authorization"), "Bearer " + cfg.api_key)) {
+          res.set_header("WWW-Authenticate", "Bearer");
+          throw HttpError{401, "unauthorized", "a valid 'Authorization: Bearer <key>' header is required"};
+        }
         handler(req, res);
       } catch (const HttpError& e) {
         send_error(res, e.status, e.code, e.message);
@@ -400,9 +398,9 @@ int serve(const ServerConfig& cfg) {
   svr.Get("/metrics", [&](const httplib::Request&, httplib::Response& res) {
     res.set_content(metrics.text(queue), "text/plain; version=0.0.4");
   });
-  svr.Get("/v1/openapi.yaml", [](const httplib::Request&, httplib::Response& res) {
+  svr.Get("/v1/openapi.yaml", wrap([](const httplib::Request&, httplib::Response& res) {
     res.set_content(kOpenApiYaml, "application/yaml");
-  });
+  }));
 
   int port = cfg.port;
   if (port == 0) {

@@ -216,6 +216,25 @@ maybe('auth')('an API key is required when configured', async () => {
     const ok = await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box, headers: { Authorization: 'Bearer sekret', 'Content-Type': 'model/gltf-binary' } });
     assert.equal(ok.status, 200);
     assert.equal((await fetch(`${s.url}/healthz`)).status, 200);
+    // A refused upload must not leave its body on a keep-alive connection:
+    // two requests on one socket, the first unauthorised, the second not.
+    const twoRequests = await new Promise((resolve, reject) => {
+      const sock = net.connect(s.port, '127.0.0.1');
+      let got = '';
+      const req = (auth) => Buffer.concat([Buffer.from(`POST /v1/refine HTTP/1.1\r\nHost: x\r\n${auth}Content-Type: model/gltf-binary\r\nContent-Length: ${box.length}\r\n\r\n`, 'latin1'), box]);
+      let sent = 1;
+      sock.on('data', (d) => {
+        got += d.toString('latin1');
+        const n = (got.match(/HTTP\/1\.1 /g) || []).length;
+        if (n >= 2) { sock.destroy(); resolve(got); }
+        else if (n === 1 && sent === 1 && got.includes('"status":401}')) { sent = 2; sock.write(req('Authorization: Bearer sekret\r\n')); }
+      });
+      sock.on('error', reject);
+      setTimeout(() => { sock.destroy(); resolve(got); }, 5000);
+      sock.write(req(''));
+    });
+    const statuses = [...twoRequests.matchAll(/HTTP\/1\.1 (\d{3})/g)].map((m) => Number(m[1]));
+    assert.deepEqual(statuses, [401, 200]);
   } finally { assert.equal(await stopServer(s), 0); }
 });
 
