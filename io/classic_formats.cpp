@@ -2,12 +2,13 @@
 // (small parsers of our own, limits checked before allocating), and the
 // .drc / .obj / .ply writers.
 #include <algorithm>
+#include <array>
+#include <map>
 #include <cmath>
 #include <cstring>
 #include <sstream>
 #include <unordered_map>
 
-#include <draco/io/obj_decoder.h>
 #include <draco/io/ply_decoder.h>
 #include <draco/mesh/mesh.h>
 
@@ -175,6 +176,98 @@ Status read_off(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
   return Status::Ok();
 }
 
+// OBJ: v / vt / vn / f (polygons fanned), negative indices, every index checked.
+// Our own parser: Draco's OBJ decoder crashes on face entries without a
+// position index (found by fuzz/fuzz_read, reproducer in fuzz/corpus).
+Status read_obj(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
+  std::vector<float> v, vt, vn;
+  struct Corner { int32_t v, t, n; };
+  std::vector<Corner> corners;  // 3 per triangle
+  const char* p = reinterpret_cast<const char*>(data);
+  const char* end = p + size;
+  int64_t line_no = 0;
+  auto bad_line = [&](const std::string& what) { return bad("bad_obj", "OBJ line " + std::to_string(line_no) + ": " + what); };
+  while (p < end) {
+    const char* eol = static_cast<const char*>(std::memchr(p, '\n', size_t(end - p)));
+    if (!eol) eol = end;
+    std::string line(p, eol);
+    p = eol + 1;
+    ++line_no;
+    const size_t hash = line.find('#');
+    if (hash != std::string::npos) line.resize(hash);
+    std::istringstream in(line);
+    std::string key;
+    if (!(in >> key)) continue;
+    if (key == "v" || key == "vn" || key == "vt") {
+      std::vector<float>& dst = key == "v" ? v : (key == "vn" ? vn : vt);
+      const int want = key == "vt" ? 2 : 3;
+      for (int k = 0; k < want; ++k) {
+        std::string tok;
+        if (!(in >> tok)) {
+          if (key == "vt" && k == 1) { dst.push_back(0.0f); continue; }  // 1D texture coordinate
+          return bad_line("too few coordinates");
+        }
+        char* e = nullptr;
+        const float x = std::strtof(tok.c_str(), &e);
+        if (e != tok.c_str() + tok.size()) return bad_line("malformed number '" + tok.substr(0, 32) + "'");
+        dst.push_back(x);
+      }
+      if (int64_t(v.size() / 3) > limits.max_vertices) return Status::Error(ErrorKind::kTooLarge, "too_large", "OBJ has too many vertices");
+    } else if (key == "f") {
+      std::vector<Corner> poly;
+      std::string tok;
+      while (in >> tok) {
+        Corner c{-1, -1, -1};
+        int32_t* slot[3] = {&c.v, &c.t, &c.n};
+        const int64_t counts[3] = {int64_t(v.size() / 3), int64_t(vt.size() / 2), int64_t(vn.size() / 3)};
+        size_t pos = 0;
+        for (int part = 0; part < 3 && pos <= tok.size(); ++part) {
+          const size_t slash = std::min(tok.find('/', pos), tok.size());
+          const std::string num = tok.substr(pos, slash - pos);
+          pos = slash + 1;
+          if (num.empty()) {
+            if (part == 0) return bad_line("face entry '" + tok.substr(0, 32) + "' has no vertex index");
+            continue;
+          }
+          char* e = nullptr;
+          const long long i = std::strtoll(num.c_str(), &e, 10);
+          if (e != num.c_str() + num.size()) return bad_line("malformed index '" + num.substr(0, 32) + "'");
+          const long long resolved = i < 0 ? counts[part] + i : i - 1;
+          if (i == 0 || resolved < 0 || resolved >= counts[part])
+            return bad("index_out_of_range", "OBJ line " + std::to_string(line_no) + ": index " + num.substr(0, 32) + " is out of range");
+          *slot[part] = int32_t(resolved);
+          if (slash >= tok.size()) break;
+        }
+        poly.push_back(c);
+      }
+      if (poly.size() < 3) continue;  // points and lines are not triangles
+      for (size_t k = 2; k < poly.size(); ++k) corners.insert(corners.end(), {poly[0], poly[k - 1], poly[k]});
+      if (int64_t(corners.size() / 3) > limits.max_triangles)
+        return Status::Error(ErrorKind::kTooLarge, "too_large", "OBJ has too many triangles");
+    }
+    // o, g, s, usemtl, mtllib, l, ...: not geometry we refine.
+  }
+  // One point per distinct (position, texcoord, normal) triple.
+  bool any_t = false, any_n = false;
+  for (const Corner& c : corners) { any_t = any_t || c.t >= 0; any_n = any_n || c.n >= 0; }
+  std::map<std::array<int32_t, 3>, int32_t> point_of;
+  DecodedAttribute pos{"POSITION", 3, {}}, uv{"TEXCOORD_0", 2, {}}, nor{"NORMAL", 3, {}};
+  for (const Corner& c : corners) {
+    auto [it, inserted] = point_of.emplace(std::array<int32_t, 3>{c.v, c.t, c.n}, int32_t(point_of.size()));
+    if (inserted) {
+      for (int k = 0; k < 3; ++k) pos.data.push_back(v[3 * size_t(c.v) + k]);
+      if (any_t) for (int k = 0; k < 2; ++k) uv.data.push_back(c.t >= 0 ? vt[2 * size_t(c.t) + k] : 0.0f);
+      if (any_n) for (int k = 0; k < 3; ++k) nor.data.push_back(c.n >= 0 ? vn[3 * size_t(c.n) + k] : 0.0f);
+    }
+    g->faces.push_back(it->second);
+  }
+  g->points = int64_t(point_of.size());
+  g->attributes.push_back(std::move(pos));
+  if (any_n) g->attributes.push_back(std::move(nor));
+  if (any_t) g->attributes.push_back(std::move(uv));
+  return Status::Ok();
+}
+
 Status read_stl(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
   DecodedAttribute pos{"POSITION", 3, {}};
   bool binary = false;
@@ -252,12 +345,13 @@ Status read_classic(const uint8_t* data, size_t size, const std::string& format,
     s = read_off(data, size, limits, &g);
   } else if (format == "stl") {
     s = read_stl(data, size, limits, &g);
-  } else if (format == "obj" || format == "ply") {
+  } else if (format == "obj") {
+    s = read_obj(data, size, limits, &g);
+  } else if (format == "ply") {
     draco::DecoderBuffer buffer;
     buffer.Init(reinterpret_cast<const char*>(data), size);
     draco::Mesh dm;
-    draco::Status ds = format == "obj" ? draco::ObjDecoder().DecodeFromBuffer(&buffer, &dm)
-                                       : draco::PlyDecoder().DecodeFromBuffer(&buffer, &dm);
+    draco::Status ds = draco::PlyDecoder().DecodeFromBuffer(&buffer, &dm);
     if (!ds.ok()) return bad("bad_" + format, format + " does not parse: " + ds.error_msg_string());
     s = from_draco_mesh(dm, limits, &g);
   } else {

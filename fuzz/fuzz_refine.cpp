@@ -1,0 +1,37 @@
+// Fuzz target: the core on arbitrary index buffers — corner table (cuts,
+// splits), then one or two levels in every mode. Positions come from the
+// input too, so degenerate and non-finite-free odd geometry is exercised.
+#include <cstddef>
+#include <cstdint>
+#include <cstring>
+
+#include "core/refine.h"
+
+extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
+  if (size < 4) return 0;
+  const int nv = 3 + data[0] % 29;
+  const int mode = data[1] % 3, levels = 1 + data[2] % 2;
+  size_t at = 3;
+  iteas::Mesh m;
+  for (int v = 0; v < nv; ++v)
+    for (int k = 0; k < 3; ++k) m.positions.push_back(at < size ? float(int8_t(data[at++])) : float(v * 3 + k));
+  while (at + 3 <= size) {
+    for (int k = 0; k < 3; ++k) m.corner_vertex.push_back(data[at++] % nv);
+  }
+  if (m.corner_vertex.empty()) return 0;
+  m.face_group.assign(m.corner_vertex.size() / 3, 0);
+  m.materialize();
+  iteas::drop_degenerate_faces(m);
+  if (m.num_faces() == 0) return 0;
+  iteas::RefineOptions o;
+  o.mode = mode == 0 ? iteas::Mode::kIteas : (mode == 1 ? iteas::Mode::kUniform : iteas::Mode::kFixed);
+  o.levels = levels;
+  o.threads = 1;
+  o.threshold.kind = mode == 2 ? iteas::ThresholdSpec::Kind::kDegrees : iteas::ThresholdSpec::Kind::kMean;
+  o.threshold.value = 5;
+  o.crease_angle = (data[2] & 4) ? 60 : 0;
+  o.max_triangles = 20000;
+  iteas::RefineStats st;
+  iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
+  return 0;
+}
