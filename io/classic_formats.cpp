@@ -9,7 +9,6 @@
 #include <sstream>
 #include <unordered_map>
 
-#include <draco/io/ply_decoder.h>
 #include <draco/mesh/mesh.h>
 
 #include "io/container.h"
@@ -69,40 +68,6 @@ Status slot_from_geometry(DecodedGeometry& g, const std::string& name, Document*
   slot.input_vertices = g.points;
   slot.welded_vertices = m.num_vertices();
   doc->meshes.push_back(std::move(slot));
-  return Status::Ok();
-}
-
-Status from_draco_mesh(const draco::Mesh& dm, const ReadLimits& limits, DecodedGeometry* g) {
-  if (int64_t(dm.num_points()) > limits.max_vertices || int64_t(dm.num_faces()) > limits.max_triangles)
-    return Status::Error(ErrorKind::kTooLarge, "too_large", "the mesh exceeds the vertex or triangle limit");
-  // Re-encode-free path: convert through the same reader as .drc payloads.
-  g->points = dm.num_points();
-  g->faces.resize(size_t(dm.num_faces()) * 3);
-  for (uint32_t f = 0; f < dm.num_faces(); ++f)
-    for (int k = 0; k < 3; ++k) g->faces[3 * size_t(f) + k] = int32_t(dm.face(draco::FaceIndex(f))[k].value());
-  int tex = 0, color = 0;
-  for (int i = 0; i < dm.num_attributes(); ++i) {
-    const draco::PointAttribute* att = dm.attribute(i);
-    std::string sem;
-    switch (att->attribute_type()) {
-      case draco::GeometryAttribute::POSITION: sem = "POSITION"; break;
-      case draco::GeometryAttribute::NORMAL: sem = "NORMAL"; break;
-      case draco::GeometryAttribute::TEX_COORD: sem = "TEXCOORD_" + std::to_string(tex++); break;
-      case draco::GeometryAttribute::COLOR: sem = "COLOR_" + std::to_string(color++); break;
-      default: continue;  // generic attributes (material ids, ...) are not geometry
-    }
-    const int comps = att->num_components();
-    if (comps < 1 || comps > 4) continue;
-    DecodedAttribute a{sem, comps, std::vector<float>(size_t(g->points) * comps)};
-    float tmp[4];
-    for (uint32_t p = 0; p < dm.num_points(); ++p) {
-      att->ConvertValue<float>(att->mapped_index(draco::PointIndex(p)), int8_t(comps), tmp);
-      std::copy(tmp, tmp + comps, &a.data[size_t(p) * comps]);
-    }
-    if (sem.rfind("COLOR_", 0) == 0 && att->normalized() == false && att->data_type() == draco::DT_UINT8)
-      for (float& x : a.data) x /= 255.0f;
-    g->attributes.push_back(std::move(a));
-  }
   return Status::Ok();
 }
 
@@ -268,6 +233,147 @@ Status read_obj(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
   return Status::Ok();
 }
 
+// PLY: ASCII and binary (either endianness). Our own parser: Draco's PLY
+// decoder crashes on out-of-range face indices (found by fuzz/fuzz_read).
+Status read_ply(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
+  struct Property { std::string name; int type = 0; int count_type = 0; bool list = false; };
+  struct Element { std::string name; int64_t count = 0; std::vector<Property> props; };
+  auto type_size = [](const std::string& t) -> int {
+    if (t == "char" || t == "int8" || t == "uchar" || t == "uint8") return t[0] == 'u' ? 11 : 1;
+    if (t == "short" || t == "int16") return 2;
+    if (t == "ushort" || t == "uint16") return 12;
+    if (t == "int" || t == "int32") return 4;
+    if (t == "uint" || t == "uint32") return 14;
+    if (t == "float" || t == "float32") return 24;
+    if (t == "double" || t == "float64") return 28;
+    return 0;
+  };  // code: size + 10 unsigned, + 20 floating
+  const char* text = reinterpret_cast<const char*>(data);
+  const char* hend = nullptr;
+  for (size_t i = 0; i + 11 <= size && i < (1u << 20); ++i)
+    if (std::memcmp(text + i, "end_header", 10) == 0 && (text[i + 10] == '\n' || text[i + 10] == '\r')) {
+      hend = text + i + 10;
+      break;
+    }
+  if (!hend) return bad("bad_ply", "PLY header has no end_header");
+  while (hend < text + size && *hend != '\n') ++hend;
+  ++hend;
+  std::istringstream header(std::string(text, hend));
+  std::string line, format;
+  std::vector<Element> elements;
+  while (std::getline(header, line)) {
+    std::istringstream in(line);
+    std::string key;
+    in >> key;
+    if (key == "format") in >> format;
+    else if (key == "element") {
+      Element e;
+      if (!(in >> e.name >> e.count) || e.count < 0) return bad("bad_ply", "PLY element line is malformed");
+      elements.push_back(e);
+    } else if (key == "property") {
+      if (elements.empty()) return bad("bad_ply", "PLY property before any element");
+      Property pr;
+      std::string t;
+      in >> t;
+      if (t == "list") {
+        std::string ct, it;
+        in >> ct >> it >> pr.name;
+        pr.list = true;
+        pr.count_type = type_size(ct);
+        pr.type = type_size(it);
+        if (!pr.count_type || !pr.type || pr.count_type >= 20) return bad("bad_ply", "PLY list property has a bad type");
+      } else {
+        in >> pr.name;
+        pr.type = type_size(t);
+        if (!pr.type) return bad("bad_ply", "PLY property type '" + t.substr(0, 16) + "' is unknown");
+      }
+      elements.back().props.push_back(pr);
+    }
+  }
+  const bool ascii = format == "ascii", little = format == "binary_little_endian", big = format == "binary_big_endian";
+  if (!ascii && !little && !big) return bad("bad_ply", "PLY format must be ascii or binary");
+  const uint8_t* b = reinterpret_cast<const uint8_t*>(hend);
+  const uint8_t* bend = data + size;
+  Tokens tok{hend, text + size};
+  bool ok = true;
+  auto read = [&](int code) -> double {
+    if (ascii) {
+      double v = 0;
+      if (!tok.number(&v)) ok = false;
+      return v;
+    }
+    const int n = code % 10;
+    if (bend - b < n) { ok = false; return 0; }
+    uint8_t raw[8];
+    for (int i = 0; i < n; ++i) raw[i] = big ? b[n - 1 - i] : b[i];
+    b += n;
+    if (code >= 20) {
+      if (n == 4) { float f; std::memcpy(&f, raw, 4); return f; }
+      double d; std::memcpy(&d, raw, 8); return d;
+    }
+    uint64_t u = 0;
+    std::memcpy(&u, raw, size_t(n));
+    if (code >= 10) return double(u);
+    const int shift = 64 - 8 * n;
+    return double(int64_t(u << shift) >> shift);
+  };
+  DecodedAttribute pos{"POSITION", 3, {}}, nor{"NORMAL", 3, {}}, col{"COLOR_0", 3, {}}, uv{"TEXCOORD_0", 2, {}};
+  int64_t nverts = -1;
+  for (const Element& e : elements) {
+    // Every element takes at least one byte (binary) or two (ASCII) per property.
+    const int64_t min_bytes = std::max<int64_t>(1, int64_t(e.props.size()));
+    if (e.count > int64_t(size) / min_bytes) return Status::Error(ErrorKind::kTooLarge, "too_large", "PLY declares more elements than it holds");
+    const bool is_vertex = e.name == "vertex", is_face = e.name == "face";
+    if (is_vertex && e.count > limits.max_vertices) return Status::Error(ErrorKind::kTooLarge, "too_large", "PLY has too many vertices");
+    int ix = -1, iy = -1, iz = -1, inx = -1, iny = -1, inz = -1, ir = -1, ig = -1, ib = -1, iu = -1, iv = -1, ilist = -1;
+    for (size_t k = 0; k < e.props.size(); ++k) {
+      const std::string& n = e.props[k].name;
+      const int kk = int(k);
+      if (n == "x") ix = kk; else if (n == "y") iy = kk; else if (n == "z") iz = kk;
+      else if (n == "nx") inx = kk; else if (n == "ny") iny = kk; else if (n == "nz") inz = kk;
+      else if (n == "red") ir = kk; else if (n == "green") ig = kk; else if (n == "blue") ib = kk;
+      else if (n == "s" || n == "u" || n == "texture_u") iu = kk; else if (n == "t" || n == "v" || n == "texture_v") iv = kk;
+      else if ((n == "vertex_indices" || n == "vertex_index") && e.props[k].list) ilist = kk;
+    }
+    if (is_vertex && (ix < 0 || iy < 0 || iz < 0)) return bad("bad_ply", "PLY vertices have no x, y, z");
+    std::vector<double> vals(e.props.size());
+    std::vector<int64_t> poly;
+    for (int64_t r = 0; r < e.count; ++r) {
+      for (size_t k = 0; k < e.props.size(); ++k) {
+        const Property& pr = e.props[k];
+        if (!pr.list) { vals[k] = read(pr.type); continue; }
+        const double cnt = read(pr.count_type);
+        if (!ok || cnt < 0 || cnt > 1024) return bad("bad_ply", "PLY list length is out of range");
+        poly.clear();
+        for (int i = 0; i < int(cnt); ++i) poly.push_back(int64_t(read(pr.type)));
+        if (is_face && int(k) == ilist) {
+          for (int64_t idx : poly)
+            if (idx < 0 || idx >= nverts) return bad("index_out_of_range", "PLY face references a missing vertex");
+          for (size_t i = 2; i < poly.size(); ++i)
+            g->faces.insert(g->faces.end(), {int32_t(poly[0]), int32_t(poly[i - 1]), int32_t(poly[i])});
+          if (int64_t(g->faces.size() / 3) > limits.max_triangles) return Status::Error(ErrorKind::kTooLarge, "too_large", "PLY has too many triangles");
+        }
+      }
+      if (!ok) return bad("bad_ply", "PLY data ends early or is malformed");
+      if (is_vertex) {
+        for (int k : {ix, iy, iz}) pos.data.push_back(float(vals[k]));
+        if (inx >= 0 && iny >= 0 && inz >= 0) for (int k : {inx, iny, inz}) nor.data.push_back(float(vals[k]));
+        if (ir >= 0 && ig >= 0 && ib >= 0)
+          for (int k : {ir, ig, ib}) col.data.push_back(float(e.props[k].type < 20 ? vals[k] / 255.0 : vals[k]));
+        if (iu >= 0 && iv >= 0) for (int k : {iu, iv}) uv.data.push_back(float(vals[k]));
+      }
+    }
+    if (is_vertex) nverts = e.count;
+  }
+  if (nverts < 0) return bad("bad_ply", "PLY has no vertex element");
+  g->points = nverts;
+  g->attributes.push_back(std::move(pos));
+  if (!nor.data.empty()) g->attributes.push_back(std::move(nor));
+  if (!col.data.empty()) g->attributes.push_back(std::move(col));
+  if (!uv.data.empty()) g->attributes.push_back(std::move(uv));
+  return Status::Ok();
+}
+
 Status read_stl(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
   DecodedAttribute pos{"POSITION", 3, {}};
   bool binary = false;
@@ -348,12 +454,7 @@ Status read_classic(const uint8_t* data, size_t size, const std::string& format,
   } else if (format == "obj") {
     s = read_obj(data, size, limits, &g);
   } else if (format == "ply") {
-    draco::DecoderBuffer buffer;
-    buffer.Init(reinterpret_cast<const char*>(data), size);
-    draco::Mesh dm;
-    draco::Status ds = draco::PlyDecoder().DecodeFromBuffer(&buffer, &dm);
-    if (!ds.ok()) return bad("bad_" + format, format + " does not parse: " + ds.error_msg_string());
-    s = from_draco_mesh(dm, limits, &g);
+    s = read_ply(data, size, limits, &g);
   } else {
     return Status::Error(ErrorKind::kUnsupported, "unsupported_format", "unknown input format");
   }
