@@ -9,7 +9,6 @@
 #include <sstream>
 #include <unordered_map>
 
-#include <draco/mesh/mesh.h>
 
 #include "io/container.h"
 #include "io/document.h"
