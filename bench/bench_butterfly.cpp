@@ -20,6 +20,7 @@
 
 #include "core/refine.h"
 #include "io/document.h"
+#include "tests/openmesh_adapter.h"
 
 // --- heap accounting --------------------------------------------------------
 static std::atomic<int64_t> g_current{0}, g_peak{0};
@@ -91,11 +92,7 @@ static Run ours(const iteas::Mesh& input, int levels, int threads) {
 
 static Run openmesh(const iteas::Mesh& input, int levels) {
   OMesh om;
-  std::vector<OMesh::VertexHandle> vh;
-  for (int32_t v = 0; v < input.num_vertices(); ++v)
-    vh.push_back(om.add_vertex(OMesh::Point(input.positions[3 * v], input.positions[3 * v + 1], input.positions[3 * v + 2])));
-  for (int32_t f = 0; f < input.num_faces(); ++f)
-    om.add_face(vh[input.corner_vertex[3 * f]], vh[input.corner_vertex[3 * f + 1]], vh[input.corner_vertex[3 * f + 2]]);
+  iteas::test::to_openmesh(input, om);
   OpenMesh::Subdivider::Uniform::ModifiedButterflyT<OMesh> bf;
   const int64_t before = g_current.load();
   g_peak.store(before);

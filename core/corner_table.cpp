@@ -133,17 +133,4 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   return report;
 }
 
-void CornerTable::compute_vertex_corners(const Mesh& mesh) {
-  vertex_corner_.assign(mesh.num_vertices(), -1);
-  const int32_t nc = static_cast<int32_t>(opposite_.size());
-  for (int32_t c = 0; c < nc; ++c) {
-    const int32_t v = mesh.corner_vertex[c];
-    // Prefer a corner whose previous edge is a boundary: the fan's first corner.
-    if (vertex_corner_[v] < 0 || opposite_[prev_corner(c)] < 0) {
-      if (vertex_corner_[v] >= 0 && opposite_[prev_corner(vertex_corner_[v])] < 0) continue;
-      vertex_corner_[v] = c;
-    }
-  }
-}
-
 }  // namespace iteas

@@ -50,10 +50,6 @@ class CornerTable {
   const std::vector<int32_t>& opposites() const { return opposite_; }
   std::vector<int32_t>& vertex_corners() { return vertex_corner_; }
 
-  // Recomputes vertex_corner for every vertex from the opposites (used after
-  // a refinement pass that derived opposites directly).
-  void compute_vertex_corners(const Mesh& mesh);
-
  private:
   std::vector<int32_t> opposite_;
   std::vector<int32_t> vertex_corner_;

@@ -64,48 +64,4 @@ void Mesh::materialize() {
   if (face_group.empty()) face_group.assign(num_faces(), 0);
 }
 
-void compact(Mesh& mesh) {
-  mesh.materialize();
-  std::vector<int32_t> vmap(mesh.num_vertices(), -1), wmap(mesh.num_wedges(), -1);
-  int32_t nv = 0, nw = 0;
-  for (size_t c = 0; c < mesh.corner_vertex.size(); ++c) {
-    int32_t& v = mesh.corner_vertex[c];
-    if (vmap[v] < 0) vmap[v] = nv++;
-    int32_t& w = mesh.corner_wedge[c];
-    if (wmap[w] < 0) wmap[w] = nw++;
-  }
-  // Keep original relative order so that unchanged meshes stay unchanged.
-  std::vector<int32_t> vorder, worder;
-  vorder.reserve(nv);
-  worder.reserve(nw);
-  nv = nw = 0;
-  for (size_t v = 0; v < vmap.size(); ++v)
-    if (vmap[v] >= 0) { vmap[v] = nv++; vorder.push_back(int32_t(v)); }
-  for (size_t w = 0; w < wmap.size(); ++w)
-    if (wmap[w] >= 0) { wmap[w] = nw++; worder.push_back(int32_t(w)); }
-  if (size_t(nv) == vmap.size() && size_t(nw) == wmap.size()) return;
-  std::vector<float> pos(3 * size_t(nv));
-  for (int32_t i = 0; i < nv; ++i)
-    for (int k = 0; k < 3; ++k) pos[3 * i + k] = mesh.positions[3 * size_t(vorder[i]) + k];
-  mesh.positions.swap(pos);
-  for (VertexChannel& vc : mesh.vertex_channels) {
-    std::vector<float> d(3 * size_t(nv));
-    for (int32_t i = 0; i < nv; ++i)
-      for (int k = 0; k < 3; ++k) d[3 * i + k] = vc.data[3 * size_t(vorder[i]) + k];
-    vc.data.swap(d);
-  }
-  std::vector<int32_t> wv(nw);
-  for (int32_t i = 0; i < nw; ++i) wv[i] = vmap[mesh.wedge_vertex[worder[i]]];
-  mesh.wedge_vertex.swap(wv);
-  for (Channel& ch : mesh.channels) {
-    std::vector<float> d(size_t(nw) * ch.components);
-    for (int32_t i = 0; i < nw; ++i)
-      for (int k = 0; k < ch.components; ++k)
-        d[size_t(i) * ch.components + k] = ch.data[size_t(worder[i]) * ch.components + k];
-    ch.data.swap(d);
-  }
-  for (int32_t& v : mesh.corner_vertex) v = vmap[v];
-  for (int32_t& w : mesh.corner_wedge) w = wmap[w];
-}
-
 }  // namespace iteas

@@ -73,8 +73,4 @@ Aabb bounding_box(const Mesh& mesh);
 // Drops faces with a repeated vertex (SPEC §2); returns how many were dropped.
 int64_t drop_degenerate_faces(Mesh& mesh);
 
-// Removes vertices and wedges no face references, keeping order; used before
-// output so that counts match what is written.
-void compact(Mesh& mesh);
-
 }  // namespace iteas

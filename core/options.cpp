@@ -39,14 +39,6 @@ const char* mode_name(Mode m) {
   return "iteas";
 }
 
-const std::vector<std::string>& option_names() {
-  static const std::vector<std::string> names = {
-      "mode", "levels", "threshold", "threshold_scope", "select", "crease_angle", "max_triangles",
-      "tension", "output", "compression", "position_bits", "normal_bits", "texcoord_bits",
-      "color_bits", "generic_bits", "draco_level", "threads"};
-  return names;
-}
-
 bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs, Options* o,
                    std::string* error, std::string* bad_option) {
   bool levels_set = false, threshold_set = false;

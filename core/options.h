@@ -46,7 +46,4 @@ bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs
 
 const char* mode_name(Mode m);
 
-// The names parse_options accepts (snake_case).
-const std::vector<std::string>& option_names();
-
 }  // namespace iteas

@@ -39,9 +39,11 @@ void blend_skin(Mesh& m, const Channel& joints, Channel& weights, int32_t out, i
     }
   }
   // Top 4 by weight (ties: lower joint first), renormalised.
-  std::sort(inf, inf + n, [](const Influence& x, const Influence& y) {
+  auto before = [](const Influence& x, const Influence& y) {
     return x.weight != y.weight ? x.weight > y.weight : x.joint < y.joint;
-  });
+  };
+  for (int i = 1; i < n; ++i)  // at most 8 entries: insertion sort
+    for (int j = i; j > 0 && before(inf[j], inf[j - 1]); --j) std::swap(inf[j], inf[j - 1]);
   n = std::min(n, std::min(4, std::min(jc, wc)));
   float sum = 0;
   for (int i = 0; i < n; ++i) sum += inf[i].weight;

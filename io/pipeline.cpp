@@ -11,7 +11,7 @@ namespace iteas {
 Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };
   const double t0 = now();
-  std::string format = rq.input_format.empty() ? sniff_format(rq.data, rq.size, rq.name_hint) : rq.input_format;
+  const std::string format = sniff_format(rq.data, rq.size, rq.name_hint);
   if (format.empty())
     return Status::Error(ErrorKind::kUnsupported, "unsupported_format",
                          "unrecognised input format (expected glb, gltf, drc, obj, ply, off or stl)");

@@ -19,7 +19,6 @@ struct JobRequest {
   const uint8_t* data = nullptr;
   size_t size = 0;
   std::string name_hint;      // file name (for formats without magic)
-  std::string input_format;   // forced; empty = sniffed
   std::string output_format;  // glb, gltf, drc, obj, ply
   Options options;
   bool refine = true;         // false: convert only

@@ -117,16 +117,6 @@ std::map<std::string, int64_t> JobQueue::counts_by_state() const {
   return out;
 }
 
-int64_t JobQueue::held_bytes() const {
-  std::lock_guard<std::mutex> lock(mu_);
-  int64_t b = 0;
-  for (const auto& [id, job] : jobs_) {
-    std::lock_guard<std::mutex> jl(job->mu);
-    b += int64_t(job->result.size());
-  }
-  return b;
-}
-
 void JobQueue::expire_locked() {
   const auto now = std::chrono::steady_clock::now();
   // TTL first, then the oldest finished results until under the byte cap.

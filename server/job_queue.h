@@ -73,7 +73,6 @@ class JobQueue {
   size_t queued() const;
   size_t running() const { return running_.load(); }
   std::map<std::string, int64_t> counts_by_state() const;
-  int64_t held_bytes() const;
 
  private:
   void work();

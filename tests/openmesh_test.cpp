@@ -9,6 +9,7 @@
 #include <unordered_map>
 
 #include "core/refine.h"
+#include "tests/openmesh_adapter.h"
 #include "tests/support.h"
 
 namespace iteas {
@@ -21,11 +22,7 @@ using OMesh = OpenMesh::TriMesh_ArrayKernelT<Traits>;
 
 std::vector<double> openmesh_refine(const Mesh& m, int levels) {
   OMesh om;
-  std::vector<OMesh::VertexHandle> vh;
-  for (int32_t v = 0; v < m.num_vertices(); ++v)
-    vh.push_back(om.add_vertex(OMesh::Point(m.positions[3 * v], m.positions[3 * v + 1], m.positions[3 * v + 2])));
-  for (int32_t f = 0; f < m.num_faces(); ++f)
-    om.add_face(vh[m.corner_vertex[3 * f]], vh[m.corner_vertex[3 * f + 1]], vh[m.corner_vertex[3 * f + 2]]);
+  test::to_openmesh(m, om);
   OpenMesh::Subdivider::Uniform::ModifiedButterflyT<OMesh> bf;
   bf.attach(om);
   bf(size_t(levels));

@@ -82,7 +82,9 @@ TEST(Refine, TopologyPropertiesOnEveryMesh) {
         // (Cut edges legitimately separate their faces, so only here.)
         EXPECT_EQ(test::euler_characteristic(out), chi);
         EXPECT_EQ(ef.boundary_loops, in.boundary_loops);
-        if (in.boundary_corners == 0) EXPECT_EQ(ef.boundary_corners, 0);
+        if (in.boundary_corners == 0) {
+          EXPECT_EQ(ef.boundary_corners, 0);
+        }
       }
       // Old vertices never move.
       ASSERT_GE(out.positions.size(), base.positions.size());
