@@ -38,7 +38,7 @@ float normal_angle(const Mesh& mesh, int32_t f, int32_t g) {
   return float(std::atan2(std::sqrt(cx * cx + cy * cy + cz * cz), dot) * (180.0 / M_PI));
 }
 
-// Single-precision variant for statistics: same formula, about 3x cheaper.
+// Single-precision variant for statistics.
 static inline bool face_normal_f(const Mesh& mesh, int32_t f, float n[3]) {
   const float* p = mesh.positions.data();
   const int32_t* cv = &mesh.corner_vertex[3 * size_t(f)];
@@ -71,9 +71,12 @@ static inline float fast_atan2_pos(float y, float x) {
   return r;
 }
 
-static inline float normal_angle_f(const Mesh& mesh, int32_t f, int32_t g) {
-  float n1[3], n2[3];
-  if (!face_normal_f(mesh, f, n1) || !face_normal_f(mesh, g, n2)) return std::numeric_limits<float>::quiet_NaN();
+// Normal of face f for the statistics pass, NaN for zero area.
+static inline void face_normal_or_nan(const Mesh& mesh, int32_t f, float* out) {
+  if (!face_normal_f(mesh, f, out)) out[0] = out[1] = out[2] = std::numeric_limits<float>::quiet_NaN();
+}
+
+static inline float normal_angle_f(const float* n1, const float* n2) {
   const float cx = n1[1] * n2[2] - n1[2] * n2[1], cy = n1[2] * n2[0] - n1[0] * n2[2], cz = n1[0] * n2[1] - n1[1] * n2[0];
   const float dot = n1[0] * n2[0] + n1[1] * n2[1] + n1[2] * n2[2];
   return fast_atan2_pos(std::sqrt(cx * cx + cy * cy + cz * cz), dot) * float(180.0 / M_PI);
@@ -94,24 +97,41 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& th
 
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std::vector<float>* theta,
                               double threshold, double exclude, int threads) {
+  // Fixed chunks of faces (deterministic for any thread count). Without theta,
+  // each chunk computes its faces' normals once into a small cache; neighbours
+  // outside the chunk (few: subdivision keeps a parent's children together)
+  // are computed on the fly. Memory: O(threads), not O(faces).
   const int32_t nc = ct.num_corners();
-  constexpr int64_t kChunk = 1 << 15;
-  const int64_t chunks = (nc + kChunk - 1) / kChunk;
+  constexpr int64_t kFaces = 8192;
+  const int64_t nf = nc / 3;
+  const int64_t chunks = (nf + kFaces - 1) / kFaces;
   std::vector<AngleSummary> part(chunks);
   std::vector<double> sums(chunks, 0.0);
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+    std::vector<float> cache(theta ? 0 : 3 * kFaces);
     for (int64_t k = b; k < e; ++k) {
       AngleSummary& s = part[k];
-      const int32_t c_end = int32_t(std::min<int64_t>(nc, (k + 1) * kChunk));
-      for (int32_t c = int32_t(k * kChunk); c < c_end; ++c) {
+      const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
+      if (!theta)
+        for (int64_t f = f0; f < f1; ++f) face_normal_or_nan(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
+      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
         const int32_t d = ct.opposite(c);
         if (d < c) continue;  // boundary (-1) or counted at the smaller corner
-        const float t = theta ? (*theta)[c] : normal_angle_f(mesh, c / 3, d / 3);
+        float t;
+        if (theta) {
+          t = (*theta)[c];
+        } else {
+          const int64_t g = d / 3;
+          float far[3];
+          const float* ng = g < f1 ? &cache[3 * size_t(g - f0)] : far;
+          if (g >= f1) face_normal_or_nan(mesh, int32_t(g), far);
+          t = normal_angle_f(&cache[3 * size_t(c / 3 - f0)], ng);
+        }
         if (std::isnan(t) || (exclude > 0 && t >= exclude)) continue;
         ++s.edges;
         sums[k] += t;
         s.max = std::max(s.max, double(t));
-        if (t > threshold) ++s.above;
+        s.above += t > threshold;
         s.histogram[std::min(17, std::max(0, int(t / 10.0f)))]++;
       }
     }
@@ -163,7 +183,7 @@ double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const Corn
 }
 
 QualitySummary triangle_quality(const Mesh& mesh, int threads) {
-  // The smallest angle is opposite the shortest edge: one acos per face. The
+  // Smallest angle per face; the
   // 1st percentile comes from a histogram of 0.01-degree bins over [0, 60].
   constexpr int kBins = 6001;
   const int32_t nf = mesh.num_faces();
@@ -178,18 +198,22 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
       for (int32_t f = int32_t(k * kChunk), end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk)); f < end; ++f) {
         const float* v[3];
         for (int i = 0; i < 3; ++i) v[i] = p + 3 * size_t(mesh.corner_vertex[3 * size_t(f) + i]);
-        double l2[3];
-        for (int i = 0; i < 3; ++i) {
-          const float* a = v[(i + 1) % 3];
-          const float* c = v[(i + 2) % 3];
-          const double dx = double(a[0]) - c[0], dy = double(a[1]) - c[1], dz = double(a[2]) - c[2];
-          l2[i] = dx * dx + dy * dy + dz * dz;  // edge opposite corner i
-        }
-        const int s = l2[0] <= l2[1] ? (l2[0] <= l2[2] ? 0 : 2) : (l2[1] <= l2[2] ? 1 : 2);
-        const double b2 = l2[(s + 1) % 3], c2 = l2[(s + 2) % 3];
-        if (b2 == 0 || c2 == 0) continue;  // repeated position: no angles
-        const double cosv = std::clamp((b2 + c2 - l2[s]) / (2.0 * std::sqrt(b2 * c2)), -1.0, 1.0);
-        const float ang = float(std::acos(cosv) * (180.0 / M_PI));
+        // The smallest angle a is opposite the shortest edge and is at most 60
+        // degrees, so a = asin(2 area / (b c)) with b c = sqrt(l0 l1 l2 / lmin):
+        // no corner selection, no acos, no data-dependent branch.
+        const float e0[3] = {v[2][0] - v[1][0], v[2][1] - v[1][1], v[2][2] - v[1][2]};
+        const float e1[3] = {v[0][0] - v[2][0], v[0][1] - v[2][1], v[0][2] - v[2][2]};
+        const float e2[3] = {v[1][0] - v[0][0], v[1][1] - v[0][1], v[1][2] - v[0][2]};
+        const double l0 = double(e0[0]) * e0[0] + double(e0[1]) * e0[1] + double(e0[2]) * e0[2];
+        const double l1 = double(e1[0]) * e1[0] + double(e1[1]) * e1[1] + double(e1[2]) * e1[2];
+        const double l2 = double(e2[0]) * e2[0] + double(e2[1]) * e2[1] + double(e2[2]) * e2[2];
+        const double lmin = std::min(l0, std::min(l1, l2));
+        if (!(lmin > 0)) continue;  // repeated position: no angles
+        const double cx = double(e1[1]) * e2[2] - double(e1[2]) * e2[1];
+        const double cy = double(e1[2]) * e2[0] - double(e1[0]) * e2[2];
+        const double cz = double(e1[0]) * e2[1] - double(e1[1]) * e2[0];
+        const float sn = float(std::min(1.0, std::sqrt((cx * cx + cy * cy + cz * cz) * lmin / (l0 * l1 * l2))));
+        const float ang = fast_atan2_pos(sn, std::sqrt(std::max(0.0f, 1.0f - sn * sn))) * float(180.0 / M_PI);
         mins[k] = std::min(mins[k], ang);
         hist[k][std::min(kBins - 1, int(ang * 100.0f))]++;
       }
