@@ -8,44 +8,22 @@
 #include <OpenMesh/Tools/Subdivider/Uniform/ModifiedButterFlyT.hh>
 
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <iterator>
-#include <new>
 #include <string>
 #include <vector>
 
 #include "core/refine.h"
 #include "io/document.h"
+#include "io/memory_budget.h"
 #include "tests/openmesh_adapter.h"
 
-// --- heap accounting --------------------------------------------------------
-static std::atomic<int64_t> g_current{0}, g_peak{0};
-static void note(int64_t delta) {
-  const int64_t now = g_current.fetch_add(delta) + delta;
-  int64_t p = g_peak.load();
-  while (now > p && !g_peak.compare_exchange_weak(p, now)) {}
-}
-void* operator new(size_t n) {
-  void* p = std::malloc(n + 16);
-  if (!p) throw std::bad_alloc();
-  *static_cast<size_t*>(p) = n;
-  note(int64_t(n));
-  return static_cast<char*>(p) + 16;
-}
-void operator delete(void* p) noexcept {
-  if (!p) return;
-  char* base = static_cast<char*>(p) - 16;
-  note(-int64_t(*reinterpret_cast<size_t*>(base)));
-  std::free(base);
-}
-void operator delete(void* p, size_t) noexcept { operator delete(p); }
-void* operator new[](size_t n) { return operator new(n); }
-void operator delete[](void* p) noexcept { operator delete(p); }
-void operator delete[](void* p, size_t) noexcept { operator delete(p); }
+// Heap accounting: io/memory_budget.cpp replaces operator new/delete for the
+// whole process, so OpenMesh's allocations are counted exactly like ours.
+static int64_t heap_now() { return iteas::current_heap_bytes(); }
 
 using OMesh = OpenMesh::TriMesh_ArrayKernelT<>;
 using Clock = std::chrono::steady_clock;
@@ -82,26 +60,26 @@ static Run ours(const iteas::Mesh& input, int levels, int threads) {
   o.threads = threads;
   o.max_triangles = int64_t(1) << 40;
   iteas::RefineStats st;
-  const int64_t before = g_current.load();
-  g_peak.store(before);
+  const int64_t before = heap_now();
+  iteas::reset_peak_heap_bytes();
   const auto t0 = Clock::now();
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
   const double s = std::chrono::duration<double>(Clock::now() - t0).count();
-  return {s, m.num_faces(), g_peak.load() - before};
+  return {s, m.num_faces(), iteas::peak_heap_bytes() - before};
 }
 
 static Run openmesh(const iteas::Mesh& input, int levels) {
   OMesh om;
   iteas::test::to_openmesh(input, om);
   OpenMesh::Subdivider::Uniform::ModifiedButterflyT<OMesh> bf;
-  const int64_t before = g_current.load();
-  g_peak.store(before);
+  const int64_t before = heap_now();
+  iteas::reset_peak_heap_bytes();
   const auto t0 = Clock::now();
   bf.attach(om);
   bf(size_t(levels));
   bf.detach();
   const double s = std::chrono::duration<double>(Clock::now() - t0).count();
-  return {s, int64_t(om.n_faces()), g_peak.load() - before};
+  return {s, int64_t(om.n_faces()), iteas::peak_heap_bytes() - before};
 }
 
 int main(int argc, char** argv) {

@@ -7,6 +7,8 @@
 #include <draco/compression/expert_encode.h>
 #include <draco/mesh/mesh.h>
 
+#include "io/memory_budget.h"
+
 namespace iteas {
 namespace {
 
@@ -41,10 +43,8 @@ Status read_attribute(const draco::PointAttribute& att, int64_t points, const st
   return Status::Ok();
 }
 
-}  // namespace
-
-Status draco_decode(const uint8_t* data, size_t size, const std::map<std::string, int>* semantic_ids,
-                    const ReadLimits& limits, DecodedGeometry* out) {
+Status decode_unguarded(const uint8_t* data, size_t size, const std::map<std::string, int>* semantic_ids,
+                        const ReadLimits& limits, DecodedGeometry* out) {
   draco::DecoderBuffer buffer;
   buffer.Init(reinterpret_cast<const char*>(data), size);
   auto type = draco::Decoder::GetEncodedGeometryType(&buffer);
@@ -97,6 +97,28 @@ Status draco_decode(const uint8_t* data, size_t size, const std::map<std::string
     }
   }
   return Status::Ok();
+}
+
+}  // namespace
+
+Status draco_decode(const uint8_t* data, size_t size, const std::map<std::string, int>* semantic_ids,
+                    const ReadLimits& limits, DecodedGeometry* out) {
+  // Decompression-bomb limit: libdraco sizes its buffers from counts declared
+  // in the payload, so a few hundred bytes can ask for gigabytes. Everything
+  // the decoder (and our copy of its result) allocates on this thread is
+  // capped at a base plus a multiple of the payload size.
+  const int64_t cap = limits.draco_base_bytes + limits.draco_expansion * int64_t(size);
+  try {
+    MemoryBudget budget(cap);
+    return decode_unguarded(data, size, semantic_ids, limits, out);
+  } catch (const MemoryLimitExceeded&) {
+    *out = DecodedGeometry();
+    return Status::Error(ErrorKind::kTooLarge, "decompression_bomb",
+                         "Draco payload of " + std::to_string(size) + " bytes needs more than " +
+                             std::to_string(cap >> 20) + " MiB to decode (limit: " +
+                             std::to_string(limits.draco_base_bytes >> 20) + " MiB + " +
+                             std::to_string(limits.draco_expansion) + "x the payload)");
+  }
 }
 
 Status draco_encode(const EncodeRequest& req, const OutputOptions& options, EncodeResult* out) {

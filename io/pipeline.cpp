@@ -8,6 +8,22 @@
 
 namespace iteas {
 
+int64_t estimate_job_bytes(const JobRequest& r) {
+  const int64_t size = int64_t(r.size);
+  const std::string fmt = sniff_format(r.data, r.size, r.name_hint);
+  static const std::string kDraco = "KHR_draco_mesh_compression";
+  const bool draco = fmt == "drc" || std::search(r.data, r.data + r.size, kDraco.begin(), kDraco.end()) != r.data + r.size;
+  // Plain formats spend at least 6 bytes per triangle (three 16-bit indices or
+  // more); a Draco payload decodes within its bomb limit at >= 40 B/triangle.
+  int64_t tris_in = draco ? (r.limits.draco_base_bytes + r.limits.draco_expansion * size) / 40 : size / 6 + 1;
+  tris_in = std::min(tris_in, r.limits.max_triangles);
+  int64_t tris_out = tris_in;
+  if (r.refine)
+    for (int l = 0; l < r.options.refine.levels && tris_out < r.options.refine.max_triangles; ++l) tris_out *= 4;
+  tris_out = std::min(tris_out, std::max(tris_in, r.options.refine.max_triangles));
+  return (64LL << 20) + 4 * size + 100 * tris_in + 160 * tris_out;
+}
+
 Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };
   const double t0 = now();

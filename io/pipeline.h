@@ -39,6 +39,12 @@ struct JobResult {
 
 Status run_job(const JobRequest& request, const JobHooks& hooks, JobResult* result);
 
+// Upper bound, before decoding, of the heap a job needs: the input, the decoded
+// mesh (triangles bounded from the byte count, Draco by its bomb limit), and the
+// refined output (bounded by max_triangles), at per-triangle costs measured on
+// a 1.1M -> 5M triangle job (about 140 bytes per output triangle of peak RSS).
+int64_t estimate_job_bytes(const JobRequest& request);
+
 // Facts about a file without refining it (iteas inspect).
 Status inspect(const uint8_t* data, size_t size, const std::string& name_hint, const ReadLimits& limits,
                nlohmann::json* out);

@@ -1,5 +1,11 @@
 #include "server/job_queue.h"
 
+#include <malloc.h>
+
+#include <limits>
+
+#include "io/memory_budget.h"
+
 namespace iteas {
 
 const char* job_state_name(JobState s) {
@@ -30,15 +36,25 @@ JobQueue::JobQueue(const QueueLimits& limits, std::function<double()> now_ms)
 
 JobQueue::~JobQueue() { drain(std::chrono::milliseconds(0)); }
 
-bool JobQueue::submit(const std::shared_ptr<Job>& job) {
+Admission JobQueue::submit(const std::shared_ptr<Job>& job) {
   std::lock_guard<std::mutex> lock(mu_);
   expire_locked();
-  if (closed_ || queue_.size() >= limits_.capacity) return false;
+  if (closed_) return Admission::kClosed;
+  if (limits_.memory_limit > 0 && job->memory_estimate > working_share()) return Admission::kTooBig;
+  if (queue_.size() >= limits_.capacity) return Admission::kQueueFull;
+  const int64_t input = int64_t(job->input.size());
+  if (limits_.memory_limit > 0 && held_uploads_ + input > limits_.memory_limit / 4) return Admission::kUploadsFull;
+  held_uploads_ += input;
   job->created = std::chrono::steady_clock::now();
   queue_.push_back(job);
   if (job->listed) jobs_[job->id] = job;
-  wake_.notify_one();
-  return true;
+  wake_.notify_all();
+  return Admission::kAccepted;
+}
+
+int64_t JobQueue::reserved_bytes() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return reserved_;
 }
 
 std::shared_ptr<Job> JobQueue::find(const std::string& id) {
@@ -57,7 +73,8 @@ bool JobQueue::remove(const std::string& id) {
     job = it->second;
     jobs_.erase(it);
     for (auto q = queue_.begin(); q != queue_.end(); ++q)
-      if (*q == job) { queue_.erase(q); break; }
+      if (*q == job) { held_uploads_ -= int64_t(job->input.size()); queue_.erase(q); break; }
+    wake_.notify_all();
   }
   job->cancel = true;
   std::lock_guard<std::mutex> lock(job->mu);
@@ -145,10 +162,18 @@ void JobQueue::work() {
     std::shared_ptr<Job> job;
     {
       std::unique_lock<std::mutex> lock(mu_);
-      wake_.wait(lock, [&] { return closed_ || !queue_.empty(); });
+      // FIFO, and the head starts only when its estimate fits beside the
+      // running jobs' (or nothing runs: it then has the whole working share).
+      auto fits = [&] {
+        return limits_.memory_limit <= 0 || running_ == 0 ||
+               reserved_ + queue_.front()->memory_estimate <= working_share();
+      };
+      wake_.wait(lock, [&] { return (closed_ && queue_.empty()) || (!queue_.empty() && fits()); });
       if (queue_.empty()) return;  // closed and nothing left
       job = queue_.front();
       queue_.pop_front();
+      held_uploads_ -= int64_t(job->input.size());
+      reserved_ += job->memory_estimate;
       ++running_;
     }
     {
@@ -169,7 +194,14 @@ void JobQueue::work() {
     JobResult result;
     Status status;
     try {
+      // Everything this job allocates on this thread counts against its estimate.
+      MemoryBudget budget(limits_.memory_limit > 0 ? job->memory_estimate : std::numeric_limits<int64_t>::max());
       status = job->cancel ? Status() : run_job(job->request, hooks, &result);
+    } catch (const MemoryLimitExceeded&) {
+      result = JobResult();
+      status = Status::Error(ErrorKind::kTooLarge, "memory_budget",
+                             "the job outgrew its memory estimate of " + std::to_string(job->memory_estimate >> 20) +
+                                 " MiB (lower levels or max_triangles)");
     } catch (const std::bad_alloc&) {
       status = Status::Error(ErrorKind::kTooLarge, "out_of_memory", "the job needs more memory than the server has");
     }
@@ -192,7 +224,14 @@ void JobQueue::work() {
       job->finished = std::chrono::steady_clock::now();
       job->changed.notify_all();
     }
-    --running_;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      reserved_ -= job->memory_estimate;
+      --running_;
+      wake_.notify_all();
+    }
+    // Give the job's freed pages back, so RSS follows the heap down.
+    malloc_trim(0);
   }
 }
 

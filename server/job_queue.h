@@ -30,6 +30,7 @@ struct Job {
   bool listed = true;  // false for synchronous requests (not reachable by id)
   std::vector<uint8_t> input;
   JobRequest request;  // data/size point into |input|
+  int64_t memory_estimate = 0;  // estimate_job_bytes(): reserved while it runs
   std::atomic<bool> cancel{false};
   std::chrono::steady_clock::time_point created, finished;
 
@@ -53,15 +54,23 @@ struct QueueLimits {
   size_t capacity = 16;                // queued (not yet running) jobs
   std::chrono::seconds ttl{600};       // finished jobs are forgotten after this
   size_t result_bytes_cap = 512u << 20;  // bytes of finished results held at once
+  // Memory (0: unbounded): a quarter for held uploads, the rest for running
+  // jobs, each reserving its estimate and confined to it by a MemoryBudget.
+  int64_t memory_limit = 0;
 };
+
+enum class Admission { kAccepted, kQueueFull, kClosed, kTooBig, kUploadsFull };
 
 class JobQueue {
  public:
   JobQueue(const QueueLimits& limits, std::function<double()> now_ms);
   ~JobQueue();
 
-  // Queues the job, or returns false when the queue is full or closed.
-  bool submit(const std::shared_ptr<Job>& job);
+  // Queues the job, or says why not: full queue, closed, a memory estimate
+  // over the working share (413), or held uploads over their share (429).
+  Admission submit(const std::shared_ptr<Job>& job);
+  int64_t working_share() const { return limits_.memory_limit - limits_.memory_limit / 4; }
+  int64_t reserved_bytes() const;
   std::shared_ptr<Job> find(const std::string& id);
   // Cancels a queued or running job and forgets it; false if unknown.
   bool remove(const std::string& id);
@@ -86,6 +95,8 @@ class JobQueue {
   std::map<std::string, std::shared_ptr<Job>> jobs_;  // listed jobs by id
   std::vector<std::thread> workers_;
   std::atomic<size_t> running_{0};
+  int64_t reserved_ = 0;      // estimates of running jobs (under mu_)
+  int64_t held_uploads_ = 0;  // input bytes of queued jobs (under mu_)
   bool closed_ = false;
 };
 

@@ -15,6 +15,8 @@
 #include <random>
 #include <thread>
 
+#include <unistd.h>
+
 #include "core/parallel.h"
 #include "server/job_queue.h"
 
@@ -150,6 +152,16 @@ thread_local std::string t_request_id;
 
 }  // namespace
 
+int64_t default_memory_limit() {
+  int64_t total = int64_t(sysconf(_SC_PHYS_PAGES)) * int64_t(sysconf(_SC_PAGESIZE));
+  if (FILE* f = std::fopen("/sys/fs/cgroup/memory.max", "r")) {
+    long long v = 0;
+    if (std::fscanf(f, "%lld", &v) == 1 && v > 0 && v < total) total = v;  // "max" reads as no number
+    std::fclose(f);
+  }
+  return total / 4 * 3;
+}
+
 // --- flags -----------------------------------------------------------------------
 bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, std::string* error) {
   struct Flag {
@@ -176,6 +188,15 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
       {"request-timeout", integer(1, 86400, &c->request_timeout_s)},
       {"job-ttl", integer(1, 30 * 86400, &c->job_ttl_s)},
       {"result-bytes-cap", integer(0, int64_t(1) << 40, &c->result_bytes_cap)},
+      {"memory-limit", [c](const std::string& v) {  // bytes, or with a K/M/G suffix
+         char* end = nullptr;
+         long long x = std::strtoll(v.c_str(), &end, 10);
+         const std::string unit = end ? std::string(end) : "";
+         const int shift = unit == "" ? 0 : unit == "K" ? 10 : unit == "M" ? 20 : unit == "G" ? 30 : -1;
+         if (v.empty() || shift < 0 || x < 0 || x > (1LL << 50) >> shift) return false;
+         c->memory_limit = int64_t(x) << shift;
+         return true;
+       }},
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
       {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
@@ -230,6 +251,7 @@ int serve(const ServerConfig& cfg) {
   limits.capacity = size_t(cfg.queue);
   limits.ttl = std::chrono::seconds(cfg.job_ttl_s);
   limits.result_bytes_cap = size_t(cfg.result_bytes_cap);
+  limits.memory_limit = cfg.memory_limit > 0 ? cfg.memory_limit : default_memory_limit();
   JobQueue queue(limits, now_ms);
   Metrics metrics;
   std::atomic<bool> draining{false};
@@ -318,14 +340,25 @@ int serve(const ServerConfig& cfg) {
     job->request.name_hint = name;
     job->request.output_format = options.out.output;
     job->request.options = options;
+    job->memory_estimate = estimate_job_bytes(job->request);
     if (sniff_format(job->request.data, job->request.size, name).empty())
       throw HttpError{415, "unsupported_format", "the body is not a recognised mesh format (glb, gltf, drc, obj, ply, off, stl)"};
     return job;
   };
   auto submit = [&](const std::shared_ptr<Job>& job, httplib::Response& res) {
-    if (!queue.submit(job)) {
-      res.set_header("Retry-After", "2");
-      throw HttpError{429, "queue_full", "the work queue is full; retry later"};
+    switch (queue.submit(job)) {
+      case Admission::kAccepted: return;
+      case Admission::kClosed: throw HttpError{503, "draining", "the server is shutting down"};
+      case Admission::kTooBig:
+        throw HttpError{413, "memory_estimate",
+                        "this job may need " + std::to_string(job->memory_estimate >> 20) + " MiB, over the server's " +
+                            std::to_string(queue.working_share() >> 20) + " MiB for work; lower levels or max_triangles"};
+      case Admission::kQueueFull:
+        res.set_header("Retry-After", "2");
+        throw HttpError{429, "queue_full", "the work queue is full; retry later"};
+      case Admission::kUploadsFull:
+        res.set_header("Retry-After", "2");
+        throw HttpError{429, "uploads_full", "the server holds too many queued uploads; retry later"};
     }
   };
   // One wrapper for every handler: HttpError and anything else to the envelope.
@@ -412,8 +445,9 @@ int serve(const ServerConfig& cfg) {
     logger->error("cannot listen on {}:{}", cfg.host, cfg.port);
     return 4;
   }
-  logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{})" : "listening on {}:{} with {} workers",
-               cfg.host, port, workers);
+  logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"memory_limit_mib":{})"
+                        : "listening on {}:{} with {} workers, memory limit {} MiB",
+               cfg.host, port, workers, limits.memory_limit >> 20);
   std::thread http([&] { svr.listen_after_bind(); });
 
   int sig = 0;

@@ -18,6 +18,7 @@ struct ServerConfig {
   int request_timeout_s = 300;     // synchronous requests
   int job_ttl_s = 600;
   int64_t result_bytes_cap = 1LL << 30;
+  int64_t memory_limit = 0;        // bytes for uploads + work; 0: 3/4 of RAM or of the cgroup limit
   int grace_s = 30;                // SIGTERM: time running work gets to finish
   int read_timeout_s = 10;         // a stalled client is dropped after this
   std::string api_key;             // empty: no authentication
@@ -27,6 +28,9 @@ struct ServerConfig {
 // Parses `--name value` flags, each with an ITEAS_NAME environment
 // equivalent (flags win). Returns false with |error| set on a bad flag.
 bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* config, std::string* error);
+
+// 3/4 of the smaller of physical memory and the cgroup v2 memory.max.
+int64_t default_memory_limit();
 
 // Runs until SIGTERM/SIGINT, then drains. Returns the process exit code.
 int serve(const ServerConfig& config);

@@ -287,3 +287,61 @@ maybe('openapi')('the OpenAPI document passes a standard linter and is served', 
   const served = await (await fetch(`${server.url}/v1/openapi.yaml`)).text();
   assert.equal(served, fs.readFileSync(path.join(SOURCE_DIR, 'proto/openapi.yaml'), 'utf8'));
 });
+
+// --- resource bounds (hardening issue, point 3) -------------------------------
+function rssKiB(pid) {
+  const m = fs.readFileSync(`/proc/${pid}/status`, 'utf8').match(/VmRSS:\s+(\d+)/);
+  return m ? Number(m[1]) : 0;
+}
+
+maybe('bounds')('bombs and oversized work get a prompt 413 or a budget stop; peak RSS stays under the memory limit with 32 at once', async () => {
+  // The ~1M-triangle mesh: bunny-npm refined uniformly to level 4 (940,544 triangles), Draco GLB.
+  const big = path.join(tmp, 'one-million.glb');
+  const gen = spawnSync(BIN, ['refine', path.join(DATA, 'bunny-npm.obj'), '-o', big, '--mode', 'uniform', '--levels', '4',
+    '--stats', big + '.json'], { encoding: 'utf8' });
+  assert.equal(gen.status, 0, gen.stderr);
+  const generated = JSON.parse(fs.readFileSync(big + '.json', 'utf8'));
+  assert.ok(generated.output.triangles > 900000, `big mesh has ${generated.output.triangles} triangles`);
+  const ply = Buffer.from('ply\nformat binary_little_endian 1.0\nelement vertex 2147483648\nproperty float x\nproperty float y\n' +
+    'property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n');
+  const gltf = Buffer.from(JSON.stringify({ asset: { version: '2.0' }, buffers: [{ byteLength: 12, uri: 'data:application/octet-stream;base64,AAAAAAAAAAAAAAAA' }],
+    bufferViews: [{ buffer: 0, byteLength: 12 }], accessors: [{ bufferView: 0, componentType: 5126, count: 2147483648, type: 'VEC3' }],
+    meshes: [{ primitives: [{ attributes: { POSITION: 0 } }] }] }));
+
+  const limitMiB = 3072;
+  const s = await startServer(['--workers', '2', '--queue', '16', '--memory-limit', `${limitMiB}M`, '--max-output-triangles', '3000000']);
+  let peak = 0;
+  const sampler = setInterval(() => { peak = Math.max(peak, rssKiB(s.proc.pid)); }, 50);
+  try {
+    const post = (body, type, query = '') => fetch(`${s.url}/v1/refine${query}`, { method: 'POST', headers: { 'Content-Type': type }, body });
+    for (const name of ['crash-draco-bomb-246-bytes.drc', 'crash-draco-edgebreaker-bomb.drc']) {
+      const r = await post(fs.readFileSync(path.join(DATA, 'nasty', name)), 'application/octet-stream');
+      const body = await expectError(r, 413, 'decompression_bomb');
+      assert.match(body.error.message, /MiB/);
+    }
+    await expectError(await post(ply, 'application/ply'), 413, 'too_large');
+    const g = await post(gltf, 'model/gltf+json');
+    assert.ok([400, 413, 422].includes(g.status), `2^31-vertex glTF answered ${g.status}`);
+
+    // 32 requests for 8 levels at once: each one runs to its triangle budget, waits its turn for
+    // memory, or is turned away with 429; never a 5xx, never an out-of-memory kill.
+    const bytes = fs.readFileSync(big);
+    const answers = await Promise.all(Array.from({ length: 32 }, () => post(bytes, 'model/gltf-binary', '?levels=8')
+      .then(async (r) => ({ status: r.status, stats: r.headers.get('x-iteas-stats'), body: await r.arrayBuffer() }))));
+    const counts = {};
+    for (const a of answers) counts[a.status] = (counts[a.status] || 0) + 1;
+    for (const status of Object.keys(counts)) assert.ok(['200', '429'].includes(status), `statuses ${JSON.stringify(counts)}`);
+    assert.ok(counts[200] >= 1, `statuses ${JSON.stringify(counts)}`);
+    for (const a of answers.filter((x) => x.status === 200)) {
+      const st = JSON.parse(a.stats);
+      assert.equal(st.stopped_by, 'budget');
+      assert.ok(st.output.triangles <= 3000000);
+    }
+    assert.equal((await fetch(`${s.url}/healthz`)).status, 200);
+  } finally {
+    clearInterval(sampler);
+    await stopServer(s);
+  }
+  console.log(`# bounds: peak RSS ${(peak / 1024).toFixed(0)} MiB under a ${limitMiB} MiB limit`);
+  assert.ok(peak > 0 && peak < limitMiB * 1024, `peak RSS ${peak} KiB`);
+});

@@ -1,0 +1,79 @@
+#include "io/memory_budget.h"
+
+#include <malloc.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cstdlib>
+#include <limits>
+
+namespace iteas {
+namespace {
+
+std::atomic<int64_t> g_current{0}, g_peak{0};
+thread_local int64_t t_net = 0;  // bytes this thread allocated minus what it freed
+thread_local int64_t t_cap = std::numeric_limits<int64_t>::max();  // t_net may not pass this
+thread_local bool t_exceeded = false;
+thread_local int64_t t_high = 0;  // highest t_net since the innermost scope began
+
+void* allocate(std::size_t n) {
+  void* p = std::malloc(n ? n : 1);
+  if (!p) throw std::bad_alloc();
+  const int64_t size = int64_t(malloc_usable_size(p));
+  t_net += size;
+  if (t_net > t_cap) {
+    t_net -= size;
+    std::free(p);
+    t_exceeded = true;
+    throw MemoryLimitExceeded();
+  }
+  if (t_net > t_high) t_high = t_net;
+  const int64_t now = g_current.fetch_add(size, std::memory_order_relaxed) + size;
+  int64_t peak = g_peak.load(std::memory_order_relaxed);
+  while (now > peak && !g_peak.compare_exchange_weak(peak, now, std::memory_order_relaxed)) {}
+  return p;
+}
+
+void release(void* p) noexcept {
+  if (!p) return;
+  const int64_t size = int64_t(malloc_usable_size(p));
+  t_net -= size;
+  g_current.fetch_sub(size, std::memory_order_relaxed);
+  std::free(p);
+}
+
+}  // namespace
+
+int64_t current_heap_bytes() { return g_current.load(std::memory_order_relaxed); }
+int64_t peak_heap_bytes() { return g_peak.load(std::memory_order_relaxed); }
+void reset_peak_heap_bytes() { g_peak.store(g_current.load(std::memory_order_relaxed), std::memory_order_relaxed); }
+
+MemoryBudget::MemoryBudget(int64_t limit)
+    : start_(t_net), saved_cap_(t_cap), saved_high_(t_high), saved_exceeded_(t_exceeded) {
+  t_high = t_net;
+  const int64_t cap = limit > std::numeric_limits<int64_t>::max() - t_net ? std::numeric_limits<int64_t>::max()
+                                                                          : t_net + limit;
+  t_cap = cap < t_cap ? cap : t_cap;
+  t_exceeded = false;
+}
+
+MemoryBudget::~MemoryBudget() {
+  t_cap = saved_cap_;
+  t_high = std::max(saved_high_, t_high);
+  t_exceeded = saved_exceeded_ || t_exceeded;
+}
+
+int64_t MemoryBudget::used() const { return t_net - start_; }
+int64_t MemoryBudget::peak() const { return t_high - start_; }
+bool MemoryBudget::exceeded() const { return t_exceeded; }
+
+}  // namespace iteas
+
+// The replacements. The sized, array and nothrow forms of libstdc++ forward
+// to these two; the aligned forms keep their own allocator and are not counted.
+void* operator new(std::size_t n) { return iteas::allocate(n); }
+void* operator new[](std::size_t n) { return iteas::allocate(n); }
+void operator delete(void* p) noexcept { iteas::release(p); }
+void operator delete[](void* p) noexcept { iteas::release(p); }
+void operator delete(void* p, std::size_t) noexcept { iteas::release(p); }
+void operator delete[](void* p, std::size_t) noexcept { iteas::release(p); }

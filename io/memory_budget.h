@@ -1,0 +1,44 @@
+// Process-wide heap accounting and per-thread memory budgets.
+//
+// The global operator new/delete are replaced (as ClickHouse's MemoryTracker
+// does): every allocation is counted for the process and for the allocating
+// thread. A MemoryBudget scope caps the net bytes its thread may allocate while
+// it lives; past the cap, operator new throws MemoryLimitExceeded (a
+// std::bad_alloc) instead of asking the system, so a decoder fed a
+// decompression bomb or a job that outgrows its estimate fails cleanly
+// before the machine runs out of memory.
+#pragma once
+
+#include <cstdint>
+#include <new>
+
+namespace iteas {
+
+struct MemoryLimitExceeded : std::bad_alloc {
+  const char* what() const noexcept override { return "memory budget exceeded"; }
+};
+
+// Bytes the process holds through operator new now, and the most since the
+// last reset_peak_heap_bytes().
+int64_t current_heap_bytes();
+int64_t peak_heap_bytes();
+void reset_peak_heap_bytes();
+
+// While alive, this thread may hold at most |limit| more bytes than when the
+// scope began. Scopes nest (the tighter cap wins). Not copyable.
+class MemoryBudget {
+ public:
+  explicit MemoryBudget(int64_t limit);
+  ~MemoryBudget();
+  MemoryBudget(const MemoryBudget&) = delete;
+  MemoryBudget& operator=(const MemoryBudget&) = delete;
+  int64_t used() const;      // net bytes allocated by this thread in the scope
+  int64_t peak() const;      // the most |used| has been
+  bool exceeded() const;     // an allocation was refused in the scope
+
+ private:
+  int64_t start_, saved_cap_, saved_high_;
+  bool saved_exceeded_;
+};
+
+}  // namespace iteas
