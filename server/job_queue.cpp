@@ -47,7 +47,10 @@ Admission JobQueue::submit(const std::shared_ptr<Job>& job) {
   held_uploads_ += input;
   job->created = std::chrono::steady_clock::now();
   queue_.push_back(job);
-  if (job->listed) jobs_[job->id] = job;
+  if (job->listed) {
+    jobs_[job->id] = job;
+    if (observer_) observer_(*job);
+  }
   wake_.notify_all();
   return Admission::kAccepted;
 }
@@ -110,10 +113,13 @@ void JobQueue::drain(std::chrono::milliseconds grace) {
   }
   for (auto& job : left) {
     job->cancel = true;
-    std::lock_guard<std::mutex> lock(job->mu);
-    job->state = JobState::kCancelled;
-    job->finished = std::chrono::steady_clock::now();
-    job->changed.notify_all();
+    {
+      std::lock_guard<std::mutex> lock(job->mu);
+      job->state = JobState::kCancelled;
+      job->finished = std::chrono::steady_clock::now();
+      job->changed.notify_all();
+    }
+    if (job->listed && observer_) observer_(*job);
   }
   for (std::thread& t : workers_) t.join();
   workers_.clear();
@@ -182,6 +188,7 @@ void JobQueue::work() {
       job->phase = "decode";
       job->changed.notify_all();
     }
+    if (job->listed && observer_) observer_(*job);
     JobHooks hooks;
     hooks.now_ms = now_ms_;
     hooks.cancel = &job->cancel;
@@ -224,6 +231,7 @@ void JobQueue::work() {
       job->finished = std::chrono::steady_clock::now();
       job->changed.notify_all();
     }
+    if (job->listed && observer_) observer_(*job);
     {
       std::lock_guard<std::mutex> lock(mu_);
       reserved_ -= job->memory_estimate;

@@ -79,6 +79,10 @@ class JobQueue {
   // cancels what is left and joins the workers.
   void drain(std::chrono::milliseconds grace);
 
+  // Called with each listed job when it is queued (under the queue's lock,
+  // before a worker can see it), starts and ends: the shared store's writer.
+  void set_observer(std::function<void(Job&)> f) { observer_ = std::move(f); }
+
   size_t queued() const;
   size_t running() const { return running_.load(); }
   std::map<std::string, int64_t> counts_by_state() const;
@@ -95,6 +99,7 @@ class JobQueue {
   std::map<std::string, std::shared_ptr<Job>> jobs_;  // listed jobs by id
   std::vector<std::thread> workers_;
   std::atomic<size_t> running_{0};
+  std::function<void(Job&)> observer_;
   int64_t reserved_ = 0;      // estimates of running jobs (under mu_)
   int64_t held_uploads_ = 0;  // input bytes of queued jobs (under mu_)
   bool closed_ = false;

@@ -19,6 +19,7 @@
 
 #include "core/parallel.h"
 #include "server/job_queue.h"
+#include "server/job_store.h"
 
 namespace iteas {
 
@@ -199,6 +200,7 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
        }},
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
+      {"job-dir", [c](const std::string& v) { c->job_dir = v; return true; }},
       {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
       {"log-format", [c](const std::string& v) { c->log_format = v; return v == "text" || v == "json"; }},
   };
@@ -253,6 +255,20 @@ int serve(const ServerConfig& cfg) {
   limits.result_bytes_cap = size_t(cfg.result_bytes_cap);
   limits.memory_limit = cfg.memory_limit > 0 ? cfg.memory_limit : default_memory_limit();
   JobQueue queue(limits, now_ms);
+  const JobStore store(cfg.job_dir);
+  {
+    std::string error;
+    if (!store.usable(&error)) { logger->error("{}", error); return 2; }
+  }
+  queue.set_observer([&](Job& job) {
+    StoredJob s;
+    s.status = job.status_json();
+    s.content_type = content_type_for(job.request.output_format);
+    std::lock_guard<std::mutex> lock(job.mu);
+    if (job.state == JobState::kFailed) s.http_status = status_for(job.error);
+    store.put(job.id, s, job.state == JobState::kDone ? &job.result : nullptr);
+  });
+  std::atomic<int64_t> last_expiry{0};
   Metrics metrics;
   std::atomic<bool> draining{false};
 
@@ -346,6 +362,12 @@ int serve(const ServerConfig& cfg) {
     return job;
   };
   auto submit = [&](const std::shared_ptr<Job>& job, httplib::Response& res) {
+    if (store.enabled()) {  // the shared store's TTL, swept at most once a minute by whichever replica
+      const int64_t now_s = int64_t(now_ms() / 1000);
+      int64_t last = last_expiry.load();
+      if (now_s - last >= 60 && last_expiry.compare_exchange_strong(last, now_s))
+        store.expire(std::chrono::seconds(cfg.job_ttl_s));
+    }
     switch (queue.submit(job)) {
       case Admission::kAccepted: return;
       case Admission::kClosed: throw HttpError{503, "draining", "the server is shutting down"};
@@ -403,12 +425,32 @@ int serve(const ServerConfig& cfg) {
   }));
   svr.Get(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
-    if (!job) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    if (!job) {
+      // Another replica's job, through the shared store.
+      const auto stored = store.get(req.matches[1]);
+      if (!stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+      res.set_content(stored->status.dump(), "application/json");
+      return;
+    }
     res.set_content(job->status_json().dump(), "application/json");
   }));
   svr.Get(R"(/v1/jobs/([0-9a-f]{1,64})/result)", wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
-    if (!job) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    if (!job) {
+      const auto stored = store.get(req.matches[1]);
+      if (!stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+      const std::string state = stored->status.value("status", std::string("failed"));
+      if (state == "failed") {
+        const json err = stored->status.value("error", json::object());
+        throw HttpError{stored->http_status, err.value("code", std::string("failed")), err.value("message", std::string("the job failed"))};
+      }
+      std::string bytes;
+      if (state != "done" || !store.result(req.matches[1], &bytes))
+        throw HttpError{409, "not_ready", "the job is " + state};
+      if (stored->status.contains("statistics")) res.set_header("X-IteAS-Stats", stored->status["statistics"].dump());
+      res.set_content(std::move(bytes), stored->content_type);
+      return;
+    }
     std::lock_guard<std::mutex> lock(job->mu);
     if (job->state == JobState::kFailed) throw HttpError{status_for(job->error), job->error.code, job->error.message};
     if (job->state != JobState::kDone) throw HttpError{409, "not_ready", std::string("the job is ") + job_state_name(job->state)};
@@ -418,7 +460,9 @@ int serve(const ServerConfig& cfg) {
   }));
   svr.Delete(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
     const std::string id = req.matches[1];
-    if (!queue.remove(id)) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
+    const bool local = queue.remove(id);
+    const bool stored = store.remove(id);
+    if (!local && !stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
     res.set_content(json{{"id", id}, {"deleted", true}}.dump(), "application/json");
   }));
   svr.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {

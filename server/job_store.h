@@ -1,0 +1,43 @@
+// A job and result store shared by replicas (SPEC §8, scale-out): a directory
+// that every replica mounts (a ReadWriteMany volume in Kubernetes). The replica
+// that runs a job writes its status when it is queued, starts and ends, and its
+// result when done; any replica answers GET /v1/jobs/{id}[/result] and DELETE
+// from here when the job is not its own. Files are written to a temporary name
+// and renamed, so a reader sees a whole file or none.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+namespace iteas {
+
+struct StoredJob {
+  nlohmann::json status;     // the body of GET /v1/jobs/{id}
+  int http_status = 200;     // for a failed job: the status of its error
+  std::string content_type;  // of the result
+};
+
+class JobStore {
+ public:
+  explicit JobStore(std::string dir);
+  bool enabled() const { return !dir_.empty(); }
+  bool usable(std::string* error) const;  // the directory exists and is writable
+
+  void put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result = nullptr) const;
+  std::optional<StoredJob> get(const std::string& id) const;
+  bool result(const std::string& id, std::string* bytes) const;
+  bool remove(const std::string& id) const;
+  // Forgets jobs whose status is older than |ttl|.
+  void expire(std::chrono::seconds ttl) const;
+
+ private:
+  std::string path(const std::string& id, const char* ext) const;
+  std::string dir_;
+};
+
+}  // namespace iteas
