@@ -9,6 +9,9 @@ BUILD_TYPE=${2:-Release}
 packages=(build-essential cmake ninja-build pkg-config git ca-certificates
   libcpp-httplib-dev nlohmann-json3-dev libtinygltf-dev libdraco-dev draco libspdlog-dev libstb-dev
   libgtest-dev libgmock-dev libbenchmark-dev libopenmesh-dev)
+# The test suite also drives the web page in Debian's Chromium and puts nginx in
+# front of several replicas (ITEAS_TEST_PACKAGES=1, set by scripts/test.sh).
+[ -z "${ITEAS_TEST_PACKAGES:-}" ] || packages+=(chromium nginx-light)
 command -v node >/dev/null 2>&1 || packages+=(nodejs)
 command -v npm >/dev/null 2>&1 || packages+=(npm)
 missing=()
@@ -21,6 +24,9 @@ if [ ${#missing[@]} -gt 0 ]; then
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
 fi
+
+# three.js for the web page, vendored into the build from the npm registry.
+[ -d web/node_modules/three ] || (cd web && npm ci --no-audit --no-fund --loglevel=error)
 
 cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE="$BUILD_TYPE" >/dev/null
 ninja -C "$BUILD_DIR"

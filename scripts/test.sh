@@ -5,7 +5,7 @@
 # broken-file checks again under AddressSanitizer + UBSan.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-scripts/setup.sh build Release
+ITEAS_TEST_PACKAGES=1 scripts/setup.sh build Release
 (cd tests/js && npm ci --no-audit --no-fund --loglevel=error)
 
 echo "[test] release build"

@@ -200,6 +200,7 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
        }},
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
+      {"web-root", [c](const std::string& v) { c->web_root = v; return true; }},
       {"job-dir", [c](const std::string& v) { c->job_dir = v; return true; }},
       {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
       {"log-format", [c](const std::string& v) { c->log_format = v; return v == "text" || v == "json"; }},
@@ -478,6 +479,23 @@ int serve(const ServerConfig& cfg) {
   svr.Get("/v1/openapi.yaml", wrap([](const httplib::Request&, httplib::Response& res) {
     res.set_content(kOpenApiYaml, "application/yaml");
   }));
+
+  // The web page (static files, no authentication: the page asks for the key).
+  std::string web_root = cfg.web_root;
+  if (web_root.empty()) {
+    char exe[4096];
+    const ssize_t n = readlink("/proc/self/exe", exe, sizeof exe - 1);
+    if (n > 0) {
+      const std::string dir = std::string(exe, size_t(n)).substr(0, std::string(exe, size_t(n)).rfind('/'));
+      if (access((dir + "/web/index.html").c_str(), R_OK) == 0) web_root = dir + "/web";
+    }
+  }
+  if (!web_root.empty() && !svr.set_mount_point("/", web_root)) {
+    logger->error("cannot serve the web page from {}", web_root);
+    return 2;
+  }
+  svr.set_file_extension_and_mimetype_mapping("wasm", "application/wasm");
+  svr.set_file_extension_and_mimetype_mapping("mjs", "text/javascript");
 
   int port = cfg.port;
   if (port == 0) {
