@@ -51,8 +51,10 @@ void reset_peak_heap_bytes() { g_peak.store(g_current.load(std::memory_order_rel
 MemoryBudget::MemoryBudget(int64_t limit)
     : start_(t_net), saved_cap_(t_cap), saved_high_(t_high), saved_exceeded_(t_exceeded) {
   t_high = t_net;
-  const int64_t cap = limit > std::numeric_limits<int64_t>::max() - t_net ? std::numeric_limits<int64_t>::max()
-                                                                          : t_net + limit;
+  // t_net may be negative (this thread freed what others allocated): no
+  // overflow either way.
+  const int64_t max = std::numeric_limits<int64_t>::max();
+  const int64_t cap = t_net > 0 && limit > max - t_net ? max : t_net + limit;
   t_cap = cap < t_cap ? cap : t_cap;
   t_exceeded = false;
 }

@@ -20,6 +20,7 @@
 #include "core/parallel.h"
 #include "server/job_queue.h"
 #include "server/job_store.h"
+#include "io/memory_budget.h"
 
 namespace iteas {
 
@@ -73,6 +74,10 @@ class Metrics {
          std::to_string(q.queued()) + "\n";
     s += "# HELP iteas_jobs_running Jobs being refined.\n# TYPE iteas_jobs_running gauge\niteas_jobs_running " +
          std::to_string(q.running()) + "\n";
+    s += "# HELP iteas_memory_reserved_bytes Memory estimates of running jobs.\n# TYPE iteas_memory_reserved_bytes gauge\n"
+         "iteas_memory_reserved_bytes " + std::to_string(q.reserved_bytes()) + "\n";
+    s += "# HELP iteas_heap_bytes Heap held through operator new.\n# TYPE iteas_heap_bytes gauge\niteas_heap_bytes " +
+         std::to_string(current_heap_bytes()) + "\n";
     s += "# HELP iteas_jobs Jobs held, by status.\n# TYPE iteas_jobs gauge\n";
     for (const auto& [state, n] : q.counts_by_state())
       s += "iteas_jobs{status=\"" + state + "\"} " + std::to_string(n) + "\n";

@@ -2,9 +2,12 @@
 // bytes (issue 2, points 2-3). Run under the Asan build too.
 #include <gtest/gtest.h>
 
+#include <memory>
 #include <random>
+#include <thread>
 #include <set>
 
+#include "io/memory_budget.h"
 #include "io/pipeline.h"
 #include "tests/support.h"
 
@@ -140,6 +143,39 @@ TEST(Io, AbsurdDeclaredCountsAreRefusedBeforeAllocating) {
   const std::string off = "OFF\n2000000000 1 0\n0 0 0\n";
   const Status s2 = read_document(reinterpret_cast<const uint8_t*>(off.data()), off.size(), "off", ReadLimits(), &d);
   EXPECT_EQ(s2.kind, ErrorKind::kTooLarge);
+}
+
+TEST(MemoryBudget, RefusesPastTheCapNestsAndSurvivesForeignFrees) {
+  {
+    MemoryBudget outer(64 << 20);
+    std::vector<char> small(1 << 20);
+    EXPECT_GE(outer.used(), 1 << 20);
+    {
+      MemoryBudget inner(4 << 20);  // the tighter cap wins
+      EXPECT_THROW(std::vector<char>(8 << 20), MemoryLimitExceeded);
+      EXPECT_TRUE(inner.exceeded());
+    }
+    std::vector<char> fits(32 << 20);  // the outer cap again
+    EXPECT_THROW(std::vector<char>(64 << 20), MemoryLimitExceeded);
+  }
+  // Memory allocated on another thread and freed here makes this thread's
+  // count negative; a budget must still hold (it once overflowed to "no cap").
+  auto foreign = std::make_shared<std::vector<char>>();
+  std::thread([&] { foreign->resize(64 << 20); }).join();
+  foreign.reset();
+  for (int i = 0; i < 2; ++i) {
+    MemoryBudget budget(4 << 20);
+    EXPECT_THROW(std::vector<char>(16 << 20), MemoryLimitExceeded) << "round " << i;
+  }
+  // The Draco bombs are refused promptly, again and again on one thread.
+  for (const char* bomb : {"crash-draco-bomb-246-bytes.drc", "crash-draco-edgebreaker-bomb.drc"})
+    for (int i = 0; i < 2; ++i) {
+      const std::vector<uint8_t> bytes = test::read_bytes(test::data_dir() + "/nasty/" + bomb);
+      Document doc;
+      const Status st = read_document(bytes.data(), bytes.size(), "drc", ReadLimits(), &doc);
+      EXPECT_EQ(st.code, "decompression_bomb") << bomb;
+      EXPECT_EQ(st.kind, ErrorKind::kTooLarge);
+    }
 }
 
 TEST(Io, SniffsFormats) {
