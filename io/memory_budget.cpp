@@ -3,6 +3,7 @@
 #include <malloc.h>
 
 #include <algorithm>
+#include <cstddef>
 #include <atomic>
 #include <cstdlib>
 #include <limits>
@@ -16,8 +17,13 @@ thread_local int64_t t_cap = std::numeric_limits<int64_t>::max();  // t_net may 
 thread_local bool t_exceeded = false;
 thread_local int64_t t_high = 0;  // highest t_net since the innermost scope began
 
-void* allocate(std::size_t n) {
-  void* p = std::malloc(n ? n : 1);
+void* allocate(std::size_t n, std::size_t align = 0) {
+  void* p = nullptr;
+  if (align > alignof(std::max_align_t)) {
+    if (posix_memalign(&p, align, n ? n : 1) != 0) p = nullptr;
+  } else {
+    p = std::malloc(n ? n : 1);
+  }
   if (!p) throw std::bad_alloc();
   const int64_t size = int64_t(malloc_usable_size(p));
   t_net += size;
@@ -71,11 +77,33 @@ bool MemoryBudget::exceeded() const { return t_exceeded; }
 
 }  // namespace iteas
 
-// The replacements. The sized, array and nothrow forms of libstdc++ forward
-// to these two; the aligned forms keep their own allocator and are not counted.
+// The replacements: every form, so that no allocation pairs our delete with
+// another allocator's new (sanitizer runtimes bring their own operator new).
 void* operator new(std::size_t n) { return iteas::allocate(n); }
 void* operator new[](std::size_t n) { return iteas::allocate(n); }
+void* operator new(std::size_t n, const std::nothrow_t&) noexcept {
+  try { return iteas::allocate(n); } catch (...) { return nullptr; }
+}
+void* operator new[](std::size_t n, const std::nothrow_t&) noexcept {
+  try { return iteas::allocate(n); } catch (...) { return nullptr; }
+}
+void* operator new(std::size_t n, std::align_val_t a) { return iteas::allocate(n, std::size_t(a)); }
+void* operator new[](std::size_t n, std::align_val_t a) { return iteas::allocate(n, std::size_t(a)); }
+void* operator new(std::size_t n, std::align_val_t a, const std::nothrow_t&) noexcept {
+  try { return iteas::allocate(n, std::size_t(a)); } catch (...) { return nullptr; }
+}
+void* operator new[](std::size_t n, std::align_val_t a, const std::nothrow_t&) noexcept {
+  try { return iteas::allocate(n, std::size_t(a)); } catch (...) { return nullptr; }
+}
 void operator delete(void* p) noexcept { iteas::release(p); }
 void operator delete[](void* p) noexcept { iteas::release(p); }
 void operator delete(void* p, std::size_t) noexcept { iteas::release(p); }
 void operator delete[](void* p, std::size_t) noexcept { iteas::release(p); }
+void operator delete(void* p, const std::nothrow_t&) noexcept { iteas::release(p); }
+void operator delete[](void* p, const std::nothrow_t&) noexcept { iteas::release(p); }
+void operator delete(void* p, std::align_val_t) noexcept { iteas::release(p); }
+void operator delete[](void* p, std::align_val_t) noexcept { iteas::release(p); }
+void operator delete(void* p, std::size_t, std::align_val_t) noexcept { iteas::release(p); }
+void operator delete[](void* p, std::size_t, std::align_val_t) noexcept { iteas::release(p); }
+void operator delete(void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release(p); }
+void operator delete[](void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release(p); }
