@@ -74,6 +74,8 @@ STATS=$(curl -fsS -D - -o "$WORK/refined.glb" -H 'Content-Type: model/obj' --dat
   "http://127.0.0.1:$PORT/v1/refine" | tr -d '\r' | sed -n 's/^[Xx]-[Ii]te[Aa][Ss]-[Ss]tats: //p')
 TRIS_IN=$(printf '%s' "$STATS" | node -e 'let s="";process.stdin.on("data",d=>s+=d).on("end",()=>{const j=JSON.parse(s);console.log(j.input.triangles+" -> "+j.output.triangles)})')
 GLB_BYTES=$(stat -c %s "$WORK/refined.glb")
+PAGE=$(curl -fsS -o /dev/null -w '%{http_code}' "http://127.0.0.1:$PORT/")
+THREE=$(curl -fsS -o /dev/null -w '%{http_code} %{size_download}' "http://127.0.0.1:$PORT/vendor/three/build/three.module.js")
 [ "$(head -c 4 "$WORK/refined.glb")" = glTF ] || { log "the answer is not a GLB"; exit 1; }
 # The HEALTHCHECK itself, as Docker runs it.
 for _ in $(seq 40); do
@@ -89,6 +91,7 @@ user             uid $USER_ID (non-root)
 /healthz         $HEALTH
 HEALTHCHECK      $H
 refine           $(basename "$MESH"): $TRIS_IN triangles, $GLB_BYTES bytes of GLB
+web page         / $PAGE, three.module.js $THREE bytes
 stop (SIGTERM)   exit code $EXIT
 REPORT
-[ "$H" = healthy ] && [ "$EXIT" = 0 ] && [ "$SIZE" -lt 200000000 ]
+[ "$H" = healthy ] && [ "$EXIT" = 0 ] && [ "$SIZE" -lt 200000000 ] && [ "$PAGE" = 200 ]

@@ -2,7 +2,8 @@
 # Quick start, second command: install, build, and run the whole test suite:
 # unit and property tests, the OpenMesh differential test, the CLI over every
 # mesh checked by the Khronos validator and draco3d, then the readers and the
-# broken-file checks again under AddressSanitizer + UBSan.
+# broken-file checks and the server tests again under AddressSanitizer + UBSan,
+# and the server tests under ThreadSanitizer.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ITEAS_TEST_PACKAGES=1 scripts/setup.sh build Release
@@ -18,4 +19,13 @@ export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktra
 ctest --test-dir build-asan --output-on-failure -j 2 -R 'corner_table_test|io_test'
 build-asan/tests/refine_test --gtest_filter='*AdaptiveWithEverything*:*Planar*:*Cancellation*:*Budget*' --gtest_brief=1
 ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_JS_ONLY=broken node --test tests/js/corpus.test.mjs
+# The server's integration tests against the ASan binary (the shipped meshes).
+ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_CORPUS=/nonexistent \
+  ITEAS_JS_ONLY=errors,auth,backpressure node --test tests/js/server.test.mjs
+
+echo "[test] ThreadSanitizer build: the server tests"
+cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=Tsan -DBUILD_TESTING=OFF >/dev/null
+ninja -C build-tsan iteas
+TSAN_OPTIONS=halt_on_error=1:second_deadlock_stack=1 ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
+  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure node --test tests/js/server.test.mjs
 echo "[test] all passed"
