@@ -18,6 +18,11 @@ thread_local bool t_exceeded = false;
 thread_local int64_t t_high = 0;  // highest t_net since the innermost scope began
 
 void* allocate(std::size_t n, std::size_t align = 0) {
+  // Refuse before asking the system: a bomb's 8 GB request never reaches malloc.
+  if (n > std::size_t(std::numeric_limits<int64_t>::max() / 2) || t_net + int64_t(n) > t_cap) {
+    t_exceeded = true;
+    throw MemoryLimitExceeded();
+  }
   void* p = nullptr;
   if (align > alignof(std::max_align_t)) {
     if (posix_memalign(&p, align, n ? n : 1) != 0) p = nullptr;
@@ -25,14 +30,8 @@ void* allocate(std::size_t n, std::size_t align = 0) {
     p = std::malloc(n ? n : 1);
   }
   if (!p) throw std::bad_alloc();
-  const int64_t size = int64_t(malloc_usable_size(p));
+  const int64_t size = int64_t(malloc_usable_size(p));  // a little over n; counted as held
   t_net += size;
-  if (t_net > t_cap) {
-    t_net -= size;
-    std::free(p);
-    t_exceeded = true;
-    throw MemoryLimitExceeded();
-  }
   if (t_net > t_high) t_high = t_net;
   const int64_t now = g_current.fetch_add(size, std::memory_order_relaxed) + size;
   int64_t peak = g_peak.load(std::memory_order_relaxed);
