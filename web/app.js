@@ -125,9 +125,39 @@ function area(t, i) {
   return 0.5 * Math.sqrt(cx * cx + cy * cy + cz * cz);
 }
 
+// Squared distance from point p to triangle t[i..i+8] (Ericson, Real-Time
+// Collision Detection, 5.1.5).
+function pointTriangleDistance2(px, py, pz, t, i) {
+  const ax = t[i], ay = t[i + 1], az = t[i + 2], bx = t[i + 3], by = t[i + 4], bz = t[i + 5];
+  const cx = t[i + 6], cy = t[i + 7], cz = t[i + 8];
+  const abx = bx - ax, aby = by - ay, abz = bz - az, acx = cx - ax, acy = cy - ay, acz = cz - az;
+  const apx = px - ax, apy = py - ay, apz = pz - az;
+  const d1 = abx * apx + aby * apy + abz * apz, d2 = acx * apx + acy * apy + acz * apz;
+  const d2p = (qx, qy, qz) => (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2;
+  if (d1 <= 0 && d2 <= 0) return d2p(ax, ay, az);
+  const bpx = px - bx, bpy = py - by, bpz = pz - bz;
+  const d3 = abx * bpx + aby * bpy + abz * bpz, d4 = acx * bpx + acy * bpy + acz * bpz;
+  if (d3 >= 0 && d4 <= d3) return d2p(bx, by, bz);
+  const vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) { const v = d1 / (d1 - d3); return d2p(ax + v * abx, ay + v * aby, az + v * abz); }
+  const cpx = px - cx, cpy = py - cy, cpz = pz - cz;
+  const d5 = abx * cpx + aby * cpy + abz * cpz, d6 = acx * cpx + acy * cpy + acz * cpz;
+  if (d6 >= 0 && d5 <= d6) return d2p(cx, cy, cz);
+  const vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) { const w = d2 / (d2 - d6); return d2p(ax + w * acx, ay + w * acy, az + w * acz); }
+  const va = d3 * d6 - d5 * d4;
+  if (va <= 0 && d4 - d3 >= 0 && d5 - d6 >= 0) {
+    const w = (d4 - d3) / (d4 - d3 + (d5 - d6));
+    return d2p(bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz));
+  }
+  const denom = 1 / (va + vb + vc), v = vb * denom, w = vc * denom;
+  return d2p(ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w);
+}
+
 // The refinement level of each output triangle, estimated as log4 of the area
-// of the nearest input triangle (by centroid, through a uniform grid) over its
-// own: every level splits a triangle into four of about a quarter the area.
+// of the input triangle it lies on (the closest one to its centroid, searched
+// through a uniform grid of input triangles) over its own: every level splits a
+// triangle into four of about a quarter of the area.
 function estimateLevels(input, output, maxLevel) {
   const nIn = input.length / 9, nOut = output.length / 9;
   const box = new THREE.Box3();
@@ -135,30 +165,34 @@ function estimateLevels(input, output, maxLevel) {
   const size = box.getSize(new THREE.Vector3());
   const cells = Math.max(1, Math.round(Math.cbrt(nIn / 2)));
   const cell = Math.max(size.x, size.y, size.z) / cells || 1;
-  const key = (x, y, z) => `${Math.floor((x - box.min.x) / cell)},${Math.floor((y - box.min.y) / cell)},${Math.floor((z - box.min.z) / cell)}`;
+  const cellOf = (v, lo) => Math.floor((v - lo) / cell);
   const grid = new Map();
-  const cIn = new Float32Array(nIn * 3), aIn = new Float32Array(nIn);
-  for (let f = 0; f < nIn; ++f) {
+  const aIn = new Float32Array(nIn);
+  for (let f = 0; f < nIn; ++f) {  // each input triangle in every cell its bounding box touches
     const i = 9 * f;
-    for (let k = 0; k < 3; ++k) cIn[3 * f + k] = (input[i + k] + input[i + 3 + k] + input[i + 6 + k]) / 3;
     aIn[f] = area(input, i);
-    const kk = key(cIn[3 * f], cIn[3 * f + 1], cIn[3 * f + 2]);
-    if (!grid.has(kk)) grid.set(kk, []);
-    grid.get(kk).push(f);
+    const lo = [0, 1, 2].map((k) => cellOf(Math.min(input[i + k], input[i + 3 + k], input[i + 6 + k]), box.min.getComponent(k)));
+    const hi = [0, 1, 2].map((k) => cellOf(Math.max(input[i + k], input[i + 3 + k], input[i + 6 + k]), box.min.getComponent(k)));
+    for (let x = lo[0]; x <= hi[0]; ++x) for (let y = lo[1]; y <= hi[1]; ++y) for (let z = lo[2]; z <= hi[2]; ++z) {
+      const key = `${x},${y},${z}`;
+      if (!grid.has(key)) grid.set(key, []);
+      grid.get(key).push(f);
+    }
   }
   const levels = new Uint8Array(nOut);
   for (let f = 0; f < nOut; ++f) {
     const i = 9 * f;
     const x = (output[i] + output[i + 3] + output[i + 6]) / 3, y = (output[i + 1] + output[i + 4] + output[i + 7]) / 3,
           z = (output[i + 2] + output[i + 5] + output[i + 8]) / 3;
-    const gx = Math.floor((x - box.min.x) / cell), gy = Math.floor((y - box.min.y) / cell), gz = Math.floor((z - box.min.z) / cell);
+    const gx = cellOf(x, box.min.x), gy = cellOf(y, box.min.y), gz = cellOf(z, box.min.z);
     let best = -1, bestD = Infinity;
-    for (let r = 0; r <= 3 && best < 0; ++r)
+    for (let r = 0; r <= 2 && (best < 0 || r === 1); ++r)
       for (let dx = -r; dx <= r; ++dx) for (let dy = -r; dy <= r; ++dy) for (let dz = -r; dz <= r; ++dz) {
+        if (Math.max(Math.abs(dx), Math.abs(dy), Math.abs(dz)) !== r) continue;  // the shell of radius r
         const list = grid.get(`${gx + dx},${gy + dy},${gz + dz}`);
         if (!list) continue;
         for (const g of list) {
-          const d = (cIn[3 * g] - x) ** 2 + (cIn[3 * g + 1] - y) ** 2 + (cIn[3 * g + 2] - z) ** 2;
+          const d = pointTriangleDistance2(x, y, z, input, 9 * g);
           if (d < bestD) { bestD = d; best = g; }
         }
       }
