@@ -1,6 +1,6 @@
 // Independent checks of IteAS outputs with third-party tools: the Khronos glTF
 // Validator and Google's draco3d decoder. Used by the node:test suites here.
-import { execFileSync, spawnSync } from 'node:child_process';
+import { execFileSync, spawn, spawnSync } from 'node:child_process';
 import fs from 'node:fs';
 import path from 'node:path';
 import os from 'node:os';
@@ -182,4 +182,28 @@ export function concat(arrays) {
   let o = 0;
   for (const a of arrays) { out.set(a, o); o += a.length; }
   return out;
+}
+
+// --- a server process on a free loopback port ---------------------------------
+export async function startServer(flags = [], env = {}) {
+  const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
+  let out = '';
+  proc.stdout.on('data', (d) => { out += d; });
+  proc.stderr.on('data', (d) => { out += d; });
+  const port = await new Promise((resolve, reject) => {
+    const timer = setTimeout(() => reject(new Error('server did not start: ' + out)), 10000);
+    proc.stdout.on('data', () => {
+      const m = out.match(/listening on [^:]+:(\d+)/);
+      if (m) { clearTimeout(timer); resolve(Number(m[1])); }
+    });
+    proc.on('exit', (code) => { clearTimeout(timer); reject(new Error(`server exited ${code}: ${out}`)); });
+  });
+  return { proc, port, url: `http://127.0.0.1:${port}`, log: () => out };
+}
+
+export async function stopServer(s) {
+  if (s.proc.exitCode !== null) return s.proc.exitCode;
+  const exited = new Promise((resolve) => s.proc.on('exit', (code, signal) => resolve(code ?? signal)));
+  s.proc.kill('SIGTERM');
+  return exited;
 }

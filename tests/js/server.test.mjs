@@ -2,40 +2,16 @@
 // (issue 4 points 1-4). All traffic goes to 127.0.0.1 and every loop is bounded.
 import { test, before, after } from 'node:test';
 import assert from 'node:assert/strict';
-import { spawn, spawnSync } from 'node:child_process';
+import { spawnSync } from 'node:child_process';
 import fs from 'node:fs';
 import net from 'node:net';
 import path from 'node:path';
 import Ajv2020 from 'ajv/dist/2020.js';
-import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes, checkGltfOutput } from './check.mjs';
+import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes, checkGltfOutput, startServer, stopServer } from './check.mjs';
 
 // ITEAS_JS_ONLY=a,b runs only the tests named a or b.
 const only = (process.env.ITEAS_JS_ONLY || '').split(',').filter(Boolean);
 const maybe = (name) => (only.length && !only.includes(name) ? test.skip : test);
-
-// --- a server process -------------------------------------------------------
-async function startServer(flags = [], env = {}) {
-  const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
-  let out = '';
-  const port = await new Promise((resolve, reject) => {
-    const timer = setTimeout(() => reject(new Error('server did not start: ' + out)), 10000);
-    proc.stdout.on('data', (d) => {
-      out += d;
-      const m = out.match(/listening on [^:]+:(\d+)/);
-      if (m) { clearTimeout(timer); resolve(Number(m[1])); }
-    });
-    proc.on('exit', (code) => { clearTimeout(timer); reject(new Error(`server exited ${code}: ${out}`)); });
-  });
-  proc.stdout.on('data', (d) => { out += d; });
-  return { proc, port, url: `http://127.0.0.1:${port}`, log: () => out };
-}
-
-async function stopServer(s) {
-  if (s.proc.exitCode !== null) return s.proc.exitCode;
-  const exited = new Promise((resolve) => s.proc.on('exit', (code, signal) => resolve(code ?? signal)));
-  s.proc.kill('SIGTERM');
-  return exited;
-}
 
 const ajv = new Ajv2020({ strict: false, allErrors: true });
 const statsSchema = JSON.parse(fs.readFileSync(path.join(SOURCE_DIR, 'proto/stats.schema.json'), 'utf8'));

@@ -3,35 +3,14 @@
 // Screenshots go to ITEAS_TEST_OUTPUT (default: build/test-output).
 import { test, before, after } from 'node:test';
 import assert from 'node:assert/strict';
-import { spawn } from 'node:child_process';
 import fs from 'node:fs';
 import path from 'node:path';
 import { chromium } from 'playwright-core';
-import { BIN, DATA, SOURCE_DIR } from './check.mjs';
+import { DATA, SOURCE_DIR, startServer, stopServer } from './check.mjs';
 
 const CHROMIUM = process.env.CHROMIUM || '/usr/bin/chromium';
 const OUT = process.env.ITEAS_TEST_OUTPUT || path.join(SOURCE_DIR, 'build/test-output');
 fs.mkdirSync(OUT, { recursive: true });
-
-async function startServer(flags = []) {
-  const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { stdio: ['ignore', 'pipe', 'pipe'] });
-  let out = '';
-  const port = await new Promise((resolve, reject) => {
-    const timer = setTimeout(() => reject(new Error('server did not start: ' + out)), 10000);
-    proc.stdout.on('data', (d) => {
-      out += d;
-      const m = out.match(/listening on [^:]+:(\d+)/);
-      if (m) { clearTimeout(timer); resolve(Number(m[1])); }
-    });
-    proc.on('exit', (code) => { clearTimeout(timer); reject(new Error(`server exited ${code}: ${out}`)); });
-  });
-  return { proc, url: `http://127.0.0.1:${port}` };
-}
-async function stopServer(s) {
-  const exited = new Promise((resolve) => s.proc.on('exit', resolve));
-  s.proc.kill('SIGTERM');
-  await exited;
-}
 
 let browser;
 before(async () => {
