@@ -100,5 +100,5 @@ cat "$WORK/load.json"
 TOTAL=$(grep -c 'HTTP/1.1" [0-9]' "$WORK/nginx/access.log" || true)
 FIVEXX=$(grep -cE 'HTTP/1.1" 5[0-9][0-9]' "$WORK/nginx/access.log" || true)
 log "restarts: $RESTARTS; requests through nginx: $TOTAL; 5xx answered to clients: $FIVEXX; load exit $code"
-log "drain lines: $(grep -h -c draining "$WORK"/replica*.log | paste -sd+ | bc)"
+log "drain lines: $(cat "$WORK"/replica*.log | grep -c draining)"
 [ "$code" = 0 ] && [ "$FIVEXX" = 0 ]

@@ -11,7 +11,7 @@ packages=(build-essential cmake ninja-build pkg-config git ca-certificates
   libgtest-dev libgmock-dev libbenchmark-dev libopenmesh-dev)
 # The test suite also drives the web page in Debian's Chromium and puts nginx in
 # front of several replicas (ITEAS_TEST_PACKAGES=1, set by scripts/test.sh).
-[ -z "${ITEAS_TEST_PACKAGES:-}" ] || packages+=(chromium nginx-light)
+[ -z "${ITEAS_TEST_PACKAGES:-}" ] || packages+=(chromium nginx-light curl)
 command -v node >/dev/null 2>&1 || packages+=(nodejs)
 command -v npm >/dev/null 2>&1 || packages+=(npm)
 missing=()

@@ -303,8 +303,17 @@ maybe('bounds')('bombs and oversized work get a prompt 413 or a budget stop; pea
     // 32 requests for 8 levels at once: each one runs to its triangle budget, waits its turn for
     // memory, or is turned away with 429; never a 5xx, never an out-of-memory kill.
     const bytes = fs.readFileSync(big);
-    const answers = await Promise.all(Array.from({ length: 32 }, () => post(bytes, 'model/gltf-binary', '?levels=8')
-      .then(async (r) => ({ status: r.status, stats: r.headers.get('x-iteas-stats'), body: await r.arrayBuffer() }))));
+    // A transport error (a reused keep-alive socket closed under a loaded CI machine) is
+    // retried once, as any client would; it is counted and printed, and the server must
+    // still be healthy and exit 0 at the end.
+    let retries = 0;
+    const once = () => post(bytes, 'model/gltf-binary', '?levels=8')
+      .then(async (r) => ({ status: r.status, stats: r.headers.get('x-iteas-stats'), body: await r.arrayBuffer() }));
+    const answers = await Promise.all(Array.from({ length: 32 }, () => once().catch((e) => {
+      ++retries;
+      console.log(`# bounds: retrying after ${e.cause?.code || ''} ${e.cause?.message || e.message}`);
+      return once();
+    })));
     const counts = {};
     for (const a of answers) counts[a.status] = (counts[a.status] || 0) + 1;
     for (const status of Object.keys(counts)) assert.ok(['200', '429'].includes(status), `statuses ${JSON.stringify(counts)}`);
@@ -317,7 +326,7 @@ maybe('bounds')('bombs and oversized work get a prompt 413 or a budget stop; pea
     assert.equal((await fetch(`${s.url}/healthz`)).status, 200);
   } finally {
     clearInterval(sampler);
-    await stopServer(s);
+    assert.equal(await stopServer(s), 0, 'the server drains and exits 0');
   }
   console.log(`# bounds: peak RSS ${(peak / 1024).toFixed(0)} MiB under a ${limitMiB} MiB limit`);
   assert.ok(peak > 0 && peak < limitMiB * 1024, `peak RSS ${peak} KiB`);
