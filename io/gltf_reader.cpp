@@ -351,6 +351,8 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
     j = nlohmann::json::parse(json_text);
   } catch (const nlohmann::json::parse_error& e) {
     return bad("bad_json", "glTF JSON does not parse at byte " + std::to_string(e.byte));
+  } catch (const nlohmann::json::exception& e) {  // e.g. out_of_range 406: a number over double's range
+    return bad("bad_json", std::string("glTF JSON is not usable: ") + e.what());
   }
   if (!j.is_object()) return bad("bad_gltf", "glTF JSON is not an object");
   if (!j.contains("asset") || !j["asset"].is_object() || !j["asset"].contains("version") ||

@@ -211,6 +211,11 @@ void JobQueue::work() {
                                  " MiB (lower levels or max_triangles)");
     } catch (const std::bad_alloc&) {
       status = Status::Error(ErrorKind::kTooLarge, "out_of_memory", "the job needs more memory than the server has");
+    } catch (const std::exception& e) {
+      // A reader or library threw what it should have reported: the job fails,
+      // the worker and the server live on (the fuzzers hunt these down).
+      result = JobResult();
+      status = Status::Error(ErrorKind::kBadInput, "unreadable", std::string("the input could not be processed: ") + e.what());
     }
     {
       std::lock_guard<std::mutex> jl(job->mu);
