@@ -192,6 +192,9 @@ int main(int argc, char** argv) {
   } catch (const std::bad_alloc&) {
     std::fprintf(stderr, "iteas: out of memory\n");
     return kExitBadInput;
+  } catch (const std::exception& e) {  // what a library threw instead of reporting: one line, exit 3
+    std::fprintf(stderr, "iteas: the input could not be processed: %s\n", e.what());
+    return kExitBadInput;
   }
   return usage("unknown command '" + cmd + "'");
 }
