@@ -1,6 +1,8 @@
 #include "core/parallel.h"
 
 #include <algorithm>
+#include <exception>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -20,15 +22,33 @@ void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int6
     body(0, n);
     return;
   }
+  // Exceptions (a memory budget, bad_alloc) are caught on every thread; all
+  // threads are joined before the first one is rethrown. If a thread cannot be
+  // started, its block runs here.
+  const int64_t block = (n + threads - 1) / threads;
+  std::vector<std::exception_ptr> errors(threads);
   std::vector<std::thread> pool;
   pool.reserve(threads - 1);
-  const int64_t block = (n + threads - 1) / threads;
+  auto run = [&body, &errors](int t, int64_t b, int64_t e) {
+    try {
+      body(b, e);
+    } catch (...) {
+      errors[t] = std::current_exception();
+    }
+  };
   for (int t = 1; t < threads; ++t) {
     const int64_t b = t * block, e = std::min(n, b + block);
-    if (b < e) pool.emplace_back([&body, b, e] { body(b, e); });
+    if (b >= e) continue;
+    try {
+      pool.emplace_back(run, t, b, e);
+    } catch (const std::system_error&) {
+      run(t, b, e);
+    }
   }
-  body(0, std::min(n, block));
+  run(0, 0, std::min(n, block));
   for (std::thread& th : pool) th.join();
+  for (const std::exception_ptr& error : errors)
+    if (error) std::rethrow_exception(error);
 }
 
 }  // namespace iteas

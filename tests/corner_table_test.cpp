@@ -1,7 +1,11 @@
 // Corner-table invariants on every mesh we have (issue 2, point 4).
 #include <gtest/gtest.h>
 
+#include <atomic>
+#include <stdexcept>
+
 #include "core/corner_table.h"
+#include "core/parallel.h"
 #include "tests/support.h"
 
 namespace iteas {
@@ -67,3 +71,16 @@ TEST(CornerTable, CutsNonManifoldAndConflicts) {
 
 }  // namespace
 }  // namespace iteas
+
+// A block that throws (a memory budget, bad_alloc) must not terminate the
+// process: every thread is joined and the exception reaches the caller.
+TEST(Parallel, ExceptionsReachTheCallerAfterEveryThreadJoined) {
+  for (int thrower = 0; thrower < 4; ++thrower) {
+    std::atomic<int64_t> done{0};
+    EXPECT_THROW(iteas::parallel_for(4000, 4, [&](int64_t b, int64_t e) {
+      if (b / 1000 == thrower) throw std::runtime_error("block failed");
+      done += e - b;
+    }, 1000), std::runtime_error);
+    EXPECT_EQ(done.load(), 3000) << "the other blocks ran to the end";
+  }
+}
