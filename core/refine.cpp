@@ -644,11 +644,12 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
 
   // Threshold and the "before" picture, on the input.
   edge_angles(m, s.ct, s.theta, s.threads);
+  const bool statistics = hooks.statistics || adaptive;
   double T_input = compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
   if (o.mode == Mode::kUniform) T_input = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean;
   stats.threshold = T_input;
   stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
-  stats.quality_before = triangle_quality(m, s.threads);
+  if (statistics) stats.quality_before = triangle_quality(m, s.threads);
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
   note_peak(s, m, 0);
 
@@ -723,7 +724,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (clamped) { stats.budget_clamped = true; stats.stopped_by = "budget"; }
     }
     ++levels_done;
-    const AngleSummary after = summarize_angles(m, s.ct, nullptr, ls.threshold, crease, s.threads);
+    const AngleSummary after =
+        statistics ? summarize_angles(m, s.ct, nullptr, ls.threshold, crease, s.threads) : AngleSummary();
     last_after = after;
     ls.triangles_after = m.num_faces();
     ls.mean_theta_after = after.mean;
@@ -743,9 +745,9 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   // The last level's summary already describes the output when T is the same.
   if (!stats.levels.empty() && stats.levels.back().threshold == stats.threshold && last_after.edges > 0)
     stats.after = last_after;
-  else
+  else if (statistics)
     stats.after = summarize_angles(m, s.ct, nullptr, stats.threshold, crease, s.threads);
-  stats.quality_after = triangle_quality(m, s.threads);
+  if (statistics) stats.quality_after = triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();
   stats.uniform_triangles = stats.triangles_in;

@@ -58,6 +58,10 @@ struct RefineHooks {
   const std::atomic<bool>* cancel = nullptr;
   // Testing: refine uniform levels with the general adaptive path.
   bool force_adaptive_path = false;
+  // Benchmarks: false skips the smoothness and quality statistics of uniform
+  // refinement (θ after each level, triangle angles before and after), to time
+  // the subdivision alone. Adaptive modes need θ and compute it regardless.
+  bool statistics = true;
 };
 
 enum class RefineResult { kOk, kCancelled };
