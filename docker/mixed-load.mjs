@@ -29,9 +29,9 @@ async function oneSync(mesh) {
 
 async function oneJob(mesh) {
   const t0 = Date.now();
-  const form = new FormData();
-  form.append('mesh', new Blob([mesh.bytes]), mesh.name);
-  const r = await fetch(`${url}/v1/jobs?levels=3`, { method: 'POST', body: form });
+  // The raw body, not multipart: Node 18's fetch ends multipart bodies in a way
+  // Debian's cpp-httplib 0.11 refuses (see the README's HTTP notes).
+  const r = await fetch(`${url}/v1/jobs?levels=3`, { method: 'POST', body: mesh.bytes, headers: { 'Content-Type': mesh.type } });
   if (r.status !== 202) return fail(`submit ${mesh.name}: ${r.status} ${await r.text()}`);
   const { id } = await r.json();
   for (let i = 0; i < 600; ++i) {

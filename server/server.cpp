@@ -323,6 +323,12 @@ int serve(const ServerConfig& cfg) {
     if (res.status == 404) send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
     else if (res.status == 413) send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
     else if (res.status == 405) send_error(res, 405, "method_not_allowed", "method not allowed on " + req.path);
+    else if (res.status == 400 && req.is_multipart_form_data())
+      // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
+      // which some clients (Node 18's fetch) leave out.
+      send_error(res, 400, "bad_multipart",
+                 "the multipart body could not be read (its closing boundary must end with CRLF); "
+                 "send the mesh as the raw request body instead");
     else send_error(res, res.status, "bad_request", "the request could not be read");
   });
 
