@@ -327,7 +327,7 @@ int serve(const ServerConfig& cfg) {
       // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
       // which some clients (Node 18's fetch) leave out.
       send_error(res, 400, "bad_multipart",
-                 "the multipart body could not be read (its closing boundary must end with CRLF); "
+                 "the multipart body could not be read (boundaries malformed, or the closing one not ended by CRLF); "
                  "send the mesh as the raw request body instead");
     else send_error(res, res.status, "bad_request", "the request could not be read");
   });
