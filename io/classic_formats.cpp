@@ -256,7 +256,7 @@ Status read_ply(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
     }
   if (!hend) return bad("bad_ply", "PLY header has no end_header");
   while (hend < text + size && *hend != '\n') ++hend;
-  ++hend;
+  if (hend < text + size) ++hend;  // past the '\n', never past the end (a header ending in "\r")
   std::istringstream header(std::string(text, hend));
   std::string line, format;
   std::vector<Element> elements;
