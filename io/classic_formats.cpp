@@ -342,9 +342,12 @@ Status read_ply(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
         const Property& pr = e.props[k];
         if (!pr.list) { vals[k] = read(pr.type); continue; }
         const double cnt = read(pr.count_type);
-        if (!ok || cnt < 0 || cnt > 1024) return bad("bad_ply", "PLY list length is out of range");
+        if (!ok || !(cnt >= 0 && cnt <= 1024)) return bad("bad_ply", "PLY list length is out of range");
         poly.clear();
-        for (int i = 0; i < int(cnt); ++i) poly.push_back(int64_t(read(pr.type)));
+        for (int i = 0; i < int(cnt); ++i) {
+          const double v = read(pr.type);  // any type, even float: out of range (or NaN) is -1, refused below
+          poly.push_back(v >= 0 && v < 2147483648.0 ? int64_t(v) : -1);
+        }
         if (is_face && int(k) == ilist) {
           for (int64_t idx : poly)
             if (idx < 0 || idx >= nverts) return bad("index_out_of_range", "PLY face references a missing vertex");
