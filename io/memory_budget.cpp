@@ -2,7 +2,6 @@
 
 #include <malloc.h>
 
-#include <algorithm>
 #include <cstddef>
 #include <atomic>
 #include <cstdlib>
@@ -15,7 +14,6 @@ std::atomic<int64_t> g_current{0}, g_peak{0};
 thread_local int64_t t_net = 0;  // bytes this thread allocated minus what it freed
 thread_local int64_t t_cap = std::numeric_limits<int64_t>::max();  // t_net may not pass this
 thread_local bool t_exceeded = false;
-thread_local int64_t t_high = 0;  // highest t_net since the innermost scope began
 
 void* allocate(std::size_t n, std::size_t align = 0) {
   // Refuse before asking the system: a bomb's 8 GB request never reaches malloc.
@@ -32,7 +30,6 @@ void* allocate(std::size_t n, std::size_t align = 0) {
   if (!p) throw std::bad_alloc();
   const int64_t size = int64_t(malloc_usable_size(p));  // a little over n; counted as held
   t_net += size;
-  if (t_net > t_high) t_high = t_net;
   const int64_t now = g_current.fetch_add(size, std::memory_order_relaxed) + size;
   int64_t peak = g_peak.load(std::memory_order_relaxed);
   while (now > peak && !g_peak.compare_exchange_weak(peak, now, std::memory_order_relaxed)) {}
@@ -54,8 +51,7 @@ int64_t peak_heap_bytes() { return g_peak.load(std::memory_order_relaxed); }
 void reset_peak_heap_bytes() { g_peak.store(g_current.load(std::memory_order_relaxed), std::memory_order_relaxed); }
 
 MemoryBudget::MemoryBudget(int64_t limit)
-    : start_(t_net), saved_cap_(t_cap), saved_high_(t_high), saved_exceeded_(t_exceeded) {
-  t_high = t_net;
+    : start_(t_net), saved_cap_(t_cap), saved_exceeded_(t_exceeded) {
   // t_net may be negative (this thread freed what others allocated): no
   // overflow either way.
   const int64_t max = std::numeric_limits<int64_t>::max();
@@ -66,12 +62,10 @@ MemoryBudget::MemoryBudget(int64_t limit)
 
 MemoryBudget::~MemoryBudget() {
   t_cap = saved_cap_;
-  t_high = std::max(saved_high_, t_high);
   t_exceeded = saved_exceeded_ || t_exceeded;
 }
 
 int64_t MemoryBudget::used() const { return t_net - start_; }
-int64_t MemoryBudget::peak() const { return t_high - start_; }
 bool MemoryBudget::exceeded() const { return t_exceeded; }
 
 }  // namespace iteas

@@ -33,11 +33,10 @@ class MemoryBudget {
   MemoryBudget(const MemoryBudget&) = delete;
   MemoryBudget& operator=(const MemoryBudget&) = delete;
   int64_t used() const;      // net bytes allocated by this thread in the scope
-  int64_t peak() const;      // the most |used| has been
   bool exceeded() const;     // an allocation was refused in the scope
 
  private:
-  int64_t start_, saved_cap_, saved_high_;
+  int64_t start_, saved_cap_;
   bool saved_exceeded_;
 };
 

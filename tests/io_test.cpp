@@ -53,9 +53,9 @@ TEST(Io, EveryValidMeshRoundTripsThroughGlb) {
       int64_t dropped = 0;
       for (const MeshSlot& s : out.meshes) dropped += s.dropped_faces;
       EXPECT_EQ(triangles(out) + dropped, counts.triangles);
-      if (!draco) EXPECT_EQ(dropped, 0);
+      if (!draco) { EXPECT_EQ(dropped, 0); }
       EXPECT_EQ(counts.triangles + counts.quantization_collapsed, triangles(in));
-      if (!draco) EXPECT_EQ(counts.quantization_collapsed, 0);
+      if (!draco) { EXPECT_EQ(counts.quantization_collapsed, 0); }
       EXPECT_EQ(attribute_set(out), attribute_set(in));
       EXPECT_EQ(out.meshes.size(), in.meshes.size());
     }
@@ -95,7 +95,7 @@ void expect_no_crash_on_prefixes(const std::string& path, size_t step) {
     std::vector<uint8_t> prefix(b.begin(), b.begin() + n);  // exact-size copy so ASan sees overreads
     Document d;
     const Status s = read_document(prefix.data(), prefix.size(), fmt, ReadLimits(), &d);
-    if (!s.ok()) EXPECT_FALSE(s.message.empty());
+    if (!s.ok()) { EXPECT_FALSE(s.message.empty()); }
   }
 }
 

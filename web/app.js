@@ -202,26 +202,22 @@ function estimateLevels(input, output, maxLevel) {
   return levels;
 }
 
-// One non-indexed mesh with a colour per face (its level) for the output view.
-function levelMesh(triangles, levels) {
+// One non-indexed mesh for the output view, with a colour per face (its
+// level) when |levels| is given.
+function outputMesh(triangles, levels) {
   const g = new THREE.BufferGeometry();
   g.setAttribute('position', new THREE.BufferAttribute(triangles, 3));
-  const colours = new Float32Array(triangles.length);
-  const c = new THREE.Color();
-  for (let f = 0; f < levels.length; ++f) {
-    c.set(LEVEL_COLOURS[levels[f]]);
-    for (let k = 0; k < 3; ++k) colours.set([c.r, c.g, c.b], 9 * f + 3 * k);
+  if (levels) {
+    const colours = new Float32Array(triangles.length);
+    const c = new THREE.Color();
+    for (let f = 0; f < levels.length; ++f) {
+      c.set(LEVEL_COLOURS[levels[f]]);
+      for (let k = 0; k < 3; ++k) colours.set([c.r, c.g, c.b], 9 * f + 3 * k);
+    }
+    g.setAttribute('color', new THREE.BufferAttribute(colours, 3));
   }
-  g.setAttribute('color', new THREE.BufferAttribute(colours, 3));
   g.computeVertexNormals();
-  return new THREE.Mesh(g, surfaceMaterial({ vertexColors: true, color: 0xffffff, flatShading: true }));
-}
-
-function plainMesh(triangles) {
-  const g = new THREE.BufferGeometry();
-  g.setAttribute('position', new THREE.BufferAttribute(triangles, 3));
-  g.computeVertexNormals();
-  return new THREE.Mesh(g, surfaceMaterial({ flatShading: true }));
+  return new THREE.Mesh(g, surfaceMaterial(levels ? { vertexColors: true, color: 0xffffff, flatShading: true } : { flatShading: true }));
 }
 
 // --- reading the input in the browser ----------------------------------------------
@@ -389,7 +385,7 @@ function applyDisplay() {
   const wire = $('wireframe').checked;
   for (const root of [inputObject, viewOut.root]) if (root) root.traverse((o) => { if (o.isMesh) o.material.wireframe = wire; });
   if (outputTriangles) {
-    const mesh = $('levels-colour').checked ? levelMesh(outputTriangles, outputLevels) : plainMesh(outputTriangles);
+    const mesh = outputMesh(outputTriangles, $('levels-colour').checked ? outputLevels : null);
     mesh.material.wireframe = wire;
     viewOut.show(mesh);
     const used = new Set(outputLevels);
