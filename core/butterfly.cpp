@@ -2,6 +2,10 @@
 
 #include <cmath>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 #include "core/parallel.h"
 
 namespace iteas {
@@ -49,28 +53,74 @@ void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, 
     if (green[f] == 2) --vclass.valence[mesh.corner_vertex[3 * f + 2]];
 }
 
+#define ITEAS_INLINE inline __attribute__((always_inline))
+
 namespace {
 
-inline uint8_t green_of(const ButterflyContext& ctx, int32_t corner) {
-  return ctx.green && !ctx.green->empty() ? (*ctx.green)[corner / 3] : 0;
-}
+// What the rules read, as raw arrays. kGreens is false when the level has no
+// green pairs (every uniform level): all of the green handling then compiles
+// away and a stencil is a handful of loads.
+template <bool kGreens>
+struct View {
+  const int32_t* cv;
+  const int32_t* opp;
+  const int32_t* vertex_corner;
+  const uint8_t* sharp;
+  const uint8_t* green;
+  const int32_t* valence;
+  const uint8_t* complete;
+  int32_t num_corners;
+  double tension;
+  explicit View(const ButterflyContext& ctx)
+      : cv(ctx.mesh->corner_vertex.data()),
+        opp(ctx.ct->opposites().data()),
+        vertex_corner(ctx.ct->vertex_corners().data()),
+        sharp(ctx.sharp && !ctx.sharp->empty() ? ctx.sharp->data() : nullptr),
+        green(ctx.green && !ctx.green->empty() ? ctx.green->data() : nullptr),
+        valence(ctx.vclass.valence.data()),
+        complete(ctx.vclass.complete.data()),
+        num_corners(ctx.ct->num_corners()),
+        tension(ctx.tension) {}
+  uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
+  // No sharp flags (an empty array) means: sharp = boundary.
+  bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }
+  int32_t swing_right(int32_t c) const {
+    const int32_t o = opp[next_corner(c)];
+    return o < 0 ? -1 : next_corner(o);
+  }
+  // The vertex at corner x as the parent of a green pair sees it: the midpoint
+  // corner of each child stands for the parent's opposite vertex.
+  int32_t vtx(int32_t x) const {
+    if (kGreens) {
+      const uint8_t g = green_of(x);
+      if (g == 1 && x % 3 == 1) return cv[x + 3];  // b of the second child
+      if (g == 2 && x % 3 == 0) return cv[x - 3];  // a of the first child
+    }
+    return cv[x];
+  }
+  // Is the edge opposite corner x one of the parent's own edges, (c, a) or (b, c)?
+  bool parent_edge(int32_t x) const {
+    if (!kGreens) return false;
+    const uint8_t g = green_of(x);
+    return (g == 1 && x % 3 == 1) || (g == 2 && x % 3 == 0);
+  }
+};
 
-// The vertex at corner x as the parent of a green pair sees it: the midpoint
-// corner of each child stands for the parent's opposite vertex.
-inline int32_t vtx(const ButterflyContext& ctx, int32_t x) {
-  const uint8_t g = green_of(ctx, x);
-  if (g == 1 && x % 3 == 1) return ctx.mesh->corner_vertex[x + 3];  // b of the second child
-  if (g == 2 && x % 3 == 0) return ctx.mesh->corner_vertex[x - 3];  // a of the first child
-  return ctx.mesh->corner_vertex[x];
-}
-
-// Is the edge opposite corner x one of the parent's own edges, (c, a) or (b, c)?
-inline bool parent_edge(const ButterflyContext& ctx, int32_t x) {
-  const uint8_t g = green_of(ctx, x);
-  return (g == 1 && x % 3 == 1) || (g == 2 && x % 3 == 0);
-}
-
-inline void add(std::vector<StencilTerm>& out, int32_t v, double w) { out.push_back({v, w}); }
+// Rules emit (vertex, weight) terms into a sink in a fixed order: a sink that
+// collects them (butterfly_stencil) or one that sums positions directly
+// (butterfly_point, for every case but the regular one).
+struct TermList {
+  std::vector<StencilTerm>& terms;
+  void operator()(int32_t v, double w) { terms.push_back({v, w}); }
+};
+struct PointSum {
+  const float* positions;
+  double p[3] = {0, 0, 0};
+  ITEAS_INLINE void operator()(int32_t v, double w) {
+    const float* x = positions + 3 * size_t(v);
+    for (int k = 0; k < 3; ++k) p[k] += w * x[k];
+  }
+};
 
 // s_j for valence K (Zorin et al. 1996): K = 3 and 4 special, K >= 5 by formula.
 // Tabulated once for K < 64; larger valences compute on the fly.
@@ -86,40 +136,37 @@ struct WeightTable {
       }
   }
 };
-const double* extraordinary_weights(int K) {
-  static const WeightTable table;  // immutable after construction
-  return K >= 3 && K < kMaxTabulated ? table.w[K] : nullptr;
-}
+const WeightTable kWeights;  // immutable after static initialisation
 
 // Extraordinary rule at vertex v (corner x0 at v, whose next vertex is the
 // other endpoint of the edge): 3/4 v + sum_j s_j e_j over the ring in order.
-void extraordinary(const ButterflyContext& ctx, int32_t x0, int32_t valence, double scale,
-                   std::vector<StencilTerm>& out) {
-  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
+template <bool G, typename Sink>
+void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
   const int K = valence;
-  add(out, cv[x0], 0.75 * scale);
-  const double* w = extraordinary_weights(K);
+  out(m.cv[x0], 0.75 * scale);
+  const double* w = K >= 3 && K < kMaxTabulated ? kWeights.w[K] : nullptr;
   int32_t x = x0;
   for (int j = 0; j < K; ++j) {
     // The bisecting edge (c, m) of a green pair with this vertex as apex is
     // not in the parent's ring: skip it (classify discounted it from K).
-    while (green_of(ctx, x) == 2 && x % 3 == 2) x = ctx.ct->swing_right(x);
+    if (G) while (m.green_of(x) == 2 && x % 3 == 2) x = m.swing_right(x);
     const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
-    if (s != 0.0) add(out, cv[next_corner(x)], s * scale);
-    x = ctx.ct->swing_right(x);
+    if (s != 0.0) out(m.cv[next_corner(x)], s * scale);
+    x = m.swing_right(x);
   }
 }
 
 // The point on the far side of the edge opposite corner |x| (across a sharp
 // edge it is replaced by the parallelogram completion of x's own triangle).
-void plain_wing(const ButterflyContext& ctx, int32_t x, double w, std::vector<StencilTerm>& out) {
-  const int32_t o = ctx.ct->opposite(x);
-  if (o >= 0 && !(*ctx.sharp)[x]) {
-    add(out, vtx(ctx, o), w);
+template <bool G, typename Sink>
+ITEAS_INLINE void plain_wing(const View<G>& m, int32_t x, double w, Sink& out) {
+  const int32_t o = m.opp[x];
+  if (o >= 0 && !m.is_sharp(x)) {
+    out(m.vtx(o), w);
   } else {
-    add(out, vtx(ctx, next_corner(x)), w);
-    add(out, vtx(ctx, prev_corner(x)), w);
-    add(out, vtx(ctx, x), -w);
+    out(m.vtx(next_corner(x)), w);
+    out(m.vtx(prev_corner(x)), w);
+    out(m.vtx(x), -w);
   }
 }
 
@@ -127,114 +174,198 @@ void plain_wing(const ButterflyContext& ctx, int32_t x, double w, std::vector<St
 // of a green pair (|parent_view|), the wings are the parent's: across its
 // other parent edge (reached through the sibling), and across (a, b), where
 // the neighbour is already split, by parallelogram completion a + b - c.
-void wing(const ButterflyContext& ctx, int32_t x, bool parent_view, double w, std::vector<StencilTerm>& out) {
-  const uint8_t g = green_of(ctx, x);
-  if (parent_view && g != 0) {
-    const int32_t k = x % 3, f0 = (g == 1 ? x / 3 : x / 3 - 1) * 3;  // first corner of the first child
-    const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
-    const int32_t a = cv[f0], b = cv[f0 + 4], c = cv[f0 + 2];
-    if ((g == 1 && k == 2) || (g == 2 && k == 2)) {  // across (a, m) or (m, b): across (a, b)
-      add(out, a, w); add(out, b, w); add(out, c, -w);
-      return;
+template <bool G, typename Sink>
+ITEAS_INLINE void wing(const View<G>& m, int32_t x, bool parent_view, double w, Sink& out) {
+  if (G && parent_view) {
+    const uint8_t g = m.green_of(x);
+    if (g != 0) {
+      const int32_t k = x % 3, f0 = (g == 1 ? x / 3 : x / 3 - 1) * 3;  // first corner of the first child
+      const int32_t a = m.cv[f0], b = m.cv[f0 + 4], c = m.cv[f0 + 2];
+      if (k == 2) {  // across (a, m) or (m, b): across (a, b)
+        out(a, w); out(b, w); out(c, -w);
+        return;
+      }
+      if (g == 1 && k == 0) { plain_wing(m, f0 + 3, w, out); return; }  // across (b, c)
+      if (g == 2 && k == 1) { plain_wing(m, f0 + 1, w, out); return; }  // across (c, a)
     }
-    if (g == 1 && k == 0) { plain_wing(ctx, f0 + 3, w, out); return; }  // across (b, c)
-    if (g == 2 && k == 1) { plain_wing(ctx, f0 + 1, w, out); return; }  // across (c, a)
   }
-  plain_wing(ctx, x, w, out);
+  plain_wing(m, x, w, out);
 }
 
 // Along a boundary or crease curve: the curve neighbour of v other than
 // |other|, or -1 when v has other than two sharp edges.
-int32_t curve_neighbour(const ButterflyContext& ctx, int32_t v, int32_t other) {
-  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
-  const std::vector<uint8_t>& sharp = *ctx.sharp;
-  const int32_t first = ctx.ct->vertex_corner(v);
+template <bool G>
+int32_t curve_neighbour(const View<G>& m, int32_t v, int32_t other) {
+  const int32_t first = m.vertex_corner[v];
   int32_t found = -1, count = 0, c = first, guard = 0;
   while (c >= 0) {
-    if (sharp[prev_corner(c)]) {  // outgoing edge v -> next(c)
+    if (m.is_sharp(prev_corner(c))) {  // outgoing edge v -> next(c)
       ++count;
-      if (cv[next_corner(c)] != other) found = cv[next_corner(c)];
+      if (m.cv[next_corner(c)] != other) found = m.cv[next_corner(c)];
     }
-    const int32_t s = ctx.ct->swing_right(c);
+    const int32_t s = m.swing_right(c);
     if (s < 0) {  // open fan: its last incoming edge prev(c) -> v is a boundary
       ++count;
-      if (cv[prev_corner(c)] != other) found = cv[prev_corner(c)];
+      if (m.cv[prev_corner(c)] != other) found = m.cv[prev_corner(c)];
       break;
     }
-    if (s == first || ++guard > ctx.ct->num_corners()) break;
+    if (s == first || ++guard > m.num_corners) break;
     c = s;
   }
   return count == 2 ? found : -1;
 }
 
-void four_point(const ButterflyContext& ctx, int32_t v1, int32_t v2, std::vector<StencilTerm>& out) {
-  add(out, v1, 9.0 / 16.0);
-  add(out, v2, 9.0 / 16.0);
-  const int32_t p = curve_neighbour(ctx, v1, v2);
-  if (p >= 0) add(out, p, -1.0 / 16.0);
-  else { add(out, v1, -2.0 / 16.0); add(out, v2, 1.0 / 16.0); }
-  const int32_t q = curve_neighbour(ctx, v2, v1);
-  if (q >= 0) add(out, q, -1.0 / 16.0);
-  else { add(out, v2, -2.0 / 16.0); add(out, v1, 1.0 / 16.0); }
+template <bool G, typename Sink>
+void four_point(const View<G>& m, int32_t v1, int32_t v2, Sink& out) {
+  out(v1, 9.0 / 16.0);
+  out(v2, 9.0 / 16.0);
+  const int32_t p = curve_neighbour(m, v1, v2);
+  if (p >= 0) out(p, -1.0 / 16.0);
+  else { out(v1, -2.0 / 16.0); out(v2, 1.0 / 16.0); }
+  const int32_t q = curve_neighbour(m, v2, v1);
+  if (q >= 0) out(q, -1.0 / 16.0);
+  else { out(v2, -2.0 / 16.0); out(v1, 1.0 / 16.0); }
+}
+
+template <bool G, typename Sink>
+void rules(const View<G>& m, int32_t c, Sink& out) {
+  const int32_t v1 = m.cv[next_corner(c)], v2 = m.cv[prev_corner(c)];
+  const int32_t d = m.opp[c];
+  if (d < 0 || m.is_sharp(c)) {
+    four_point(m, v1, v2, out);
+    return;
+  }
+  const bool c1 = m.complete[v1], c2 = m.complete[v2];
+  const bool pf = m.parent_edge(c), pg = m.parent_edge(d);
+  const int32_t k1 = m.valence[v1], k2 = m.valence[v2];
+  // Corner at v1 whose next vertex is v2 is next(c); at v2 whose next is v1: next(d).
+  if (c1 && c2) {
+    if (k1 == 6 && k2 == 6) {
+      const double w = m.tension;
+      out(v1, 0.5 - w);
+      out(v2, 0.5 - w);
+      out(m.vtx(c), 0.125 + 2 * w);
+      out(m.vtx(d), 0.125 + 2 * w);
+      wing(m, prev_corner(c), pf, -1.0 / 16.0 - w, out);  // across (a1, v1)
+      wing(m, next_corner(c), pf, -1.0 / 16.0 - w, out);  // across (v2, a1)
+      wing(m, prev_corner(d), pg, -1.0 / 16.0 - w, out);
+      wing(m, next_corner(d), pg, -1.0 / 16.0 - w, out);
+      if (w > 0) {
+        // 10-point: the ring neighbours of v1 and v2 straight across from the
+        // edge (three steps round a valence-6 ring).
+        int32_t x = next_corner(c), y = next_corner(d);
+        for (int j = 0; j < 3; ++j) { x = m.swing_right(x); y = m.swing_right(y); }
+        out(m.cv[next_corner(x)], w);
+        out(m.cv[next_corner(y)], w);
+      }
+      return;
+    }
+    if (k1 != 6 && k2 != 6) {
+      extraordinary(m, next_corner(c), k1, 0.5, out);
+      extraordinary(m, next_corner(d), k2, 0.5, out);
+    } else if (k1 != 6) {
+      extraordinary(m, next_corner(c), k1, 1.0, out);
+    } else {
+      extraordinary(m, next_corner(d), k2, 1.0, out);
+    }
+    return;
+  }
+  if (c1) { extraordinary(m, next_corner(c), k1, 1.0, out); return; }
+  if (c2) { extraordinary(m, next_corner(d), k2, 1.0, out); return; }
+  out(v1, 0.5);
+  out(v2, 0.5);
+  out(m.vtx(c), 0.125);
+  out(m.vtx(d), 0.125);
+  wing(m, prev_corner(c), pf, -1.0 / 16.0, out);
+  wing(m, next_corner(c), pf, -1.0 / 16.0, out);
+  wing(m, prev_corner(d), pg, -1.0 / 16.0, out);
+  wing(m, next_corner(d), pg, -1.0 / 16.0, out);
+}
+
+// The common case, spelled out: an interior edge between two complete
+// valence-6 vertices, no tension, no wing across a sharp edge, no green pair
+// involved. The eight points are summed by weight class (both paths that
+// refine positions come through here, so every path gives the same bits).
+// Returns false (nothing written) for anything else.
+template <bool G>
+ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positions, float* out) {
+  if (m.tension != 0) return false;
+  const int32_t d = m.opp[c];
+  if (d < 0 || (m.sharp && m.sharp[c])) return false;
+  if (G && (m.green_of(c) | m.green_of(d))) return false;
+  // Corners of both faces from one division each.
+  static constexpr int8_t kNextStep[3] = {1, 1, -2}, kPrevStep[3] = {2, -1, -1};
+  const int32_t kc = c % 3, kd = d % 3;
+  const int32_t nc = c + kNextStep[kc], pc = c + kPrevStep[kc], nd = d + kNextStep[kd], pd = d + kPrevStep[kd];
+  const int32_t v1 = m.cv[nc], v2 = m.cv[pc];
+  if (!(m.complete[v1] & m.complete[v2]) || m.valence[v1] != 6 || m.valence[v2] != 6) return false;
+  const int32_t x[4] = {pc, nc, pd, nd};
+  int32_t wv[4];
+  for (int i = 0; i < 4; ++i) {
+    const int32_t o = m.opp[x[i]];
+    if (o < 0 || (m.sharp && m.sharp[x[i]])) return false;
+    if (G && m.green_of(o)) return false;
+    wv[i] = m.cv[o];
+  }
+  // 1/2 (v1 + v2) + 1/8 (a + b) - 1/16 (w1 + w2 + w3 + w4), in double.
+  const float* q[8] = {positions + 3 * size_t(v1),    positions + 3 * size_t(v2),
+                       positions + 3 * size_t(m.cv[c]), positions + 3 * size_t(m.cv[d]),
+                       positions + 3 * size_t(wv[0]), positions + 3 * size_t(wv[1]),
+                       positions + 3 * size_t(wv[2]), positions + 3 * size_t(wv[3])};
+#if defined(__SSE2__)
+  // (x, y) in one register, z in another: the same IEEE double arithmetic as
+  // the scalar branch, lane by lane.
+  auto xy = [&](int i) { return _mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(q[i])))); };
+  auto zz = [&](int i) { return _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(q[i] + 2)); };
+  const __m128d e_xy = _mm_add_pd(xy(0), xy(1)), f_xy = _mm_add_pd(xy(2), xy(3));
+  const __m128d g_xy = _mm_add_pd(_mm_add_pd(_mm_add_pd(xy(4), xy(5)), xy(6)), xy(7));
+  const __m128d e_z = _mm_add_sd(zz(0), zz(1)), f_z = _mm_add_sd(zz(2), zz(3));
+  const __m128d g_z = _mm_add_sd(_mm_add_sd(_mm_add_sd(zz(4), zz(5)), zz(6)), zz(7));
+  const __m128d h = _mm_set1_pd(0.5), e = _mm_set1_pd(0.125), s = _mm_set1_pd(-1.0 / 16.0);
+  const __m128d p_xy = _mm_add_pd(_mm_add_pd(_mm_mul_pd(h, e_xy), _mm_mul_pd(e, f_xy)), _mm_mul_pd(s, g_xy));
+  const __m128d p_z = _mm_add_sd(_mm_add_sd(_mm_mul_sd(h, e_z), _mm_mul_sd(e, f_z)), _mm_mul_sd(s, g_z));
+  _mm_storel_pi(reinterpret_cast<__m64*>(out), _mm_cvtpd_ps(p_xy));
+  _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), p_z));
+#else
+  for (int k = 0; k < 3; ++k) {
+    const double e = double(q[0][k]) + double(q[1][k]), f = double(q[2][k]) + double(q[3][k]);
+    const double g = ((double(q[4][k]) + double(q[5][k])) + double(q[6][k])) + double(q[7][k]);
+    out[k] = float((0.5 * e + 0.125 * f) + (-1.0 / 16.0) * g);
+  }
+#endif
+  return true;
+}
+
+template <typename Sink>
+void dispatch(const ButterflyContext& ctx, int32_t c, Sink& out) {
+  if (ctx.green && !ctx.green->empty()) rules(View<true>(ctx), c, out);
+  else rules(View<false>(ctx), c, out);
 }
 
 }  // namespace
 
 void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out) {
   out.clear();
-  const std::vector<int32_t>& cv = ctx.mesh->corner_vertex;
-  const CornerTable& ct = *ctx.ct;
-  const int32_t v1 = cv[next_corner(c)], v2 = cv[prev_corner(c)];
-  const int32_t d = ct.opposite(c);
-  if (d < 0 || (*ctx.sharp)[c]) {
-    four_point(ctx, v1, v2, out);
-    return;
-  }
-  const bool c1 = ctx.vclass.complete[v1], c2 = ctx.vclass.complete[v2];
-  const bool pf = parent_edge(ctx, c), pg = parent_edge(ctx, d);
-  const int32_t k1 = ctx.vclass.valence[v1], k2 = ctx.vclass.valence[v2];
-  // Corner at v1 whose next vertex is v2 is next(c); at v2 whose next is v1: next(d).
-  if (c1 && c2) {
-    if (k1 == 6 && k2 == 6) {
-      const double w = ctx.tension;
-      add(out, v1, 0.5 - w);
-      add(out, v2, 0.5 - w);
-      add(out, vtx(ctx, c), 0.125 + 2 * w);
-      add(out, vtx(ctx, d), 0.125 + 2 * w);
-      wing(ctx, prev_corner(c), pf, -1.0 / 16.0 - w, out);  // across (a1, v1)
-      wing(ctx, next_corner(c), pf, -1.0 / 16.0 - w, out);  // across (v2, a1)
-      wing(ctx, prev_corner(d), pg, -1.0 / 16.0 - w, out);
-      wing(ctx, next_corner(d), pg, -1.0 / 16.0 - w, out);
-      if (w > 0) {
-        // 10-point: the ring neighbours of v1 and v2 straight across from the
-        // edge (three steps round a valence-6 ring).
-        int32_t x = next_corner(c), y = next_corner(d);
-        for (int j = 0; j < 3; ++j) { x = ct.swing_right(x); y = ct.swing_right(y); }
-        add(out, cv[next_corner(x)], w);
-        add(out, cv[next_corner(y)], w);
-      }
-      return;
+  TermList sink{out};
+  dispatch(ctx, c, sink);
+}
+
+void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positions, float out[3]) {
+  butterfly_points(ctx, &c, 1, positions, out);
+}
+
+void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
+                      float* out) {
+  auto run = [&](const auto& view) {
+    for (int64_t i = 0; i < count; ++i) {
+      if (regular_point(view, corners[i], positions, out + 3 * i)) continue;
+      PointSum sink{positions};
+      rules(view, corners[i], sink);
+      for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sink.p[k]);
     }
-    if (k1 != 6 && k2 != 6) {
-      extraordinary(ctx, next_corner(c), k1, 0.5, out);
-      extraordinary(ctx, next_corner(d), k2, 0.5, out);
-    } else if (k1 != 6) {
-      extraordinary(ctx, next_corner(c), k1, 1.0, out);
-    } else {
-      extraordinary(ctx, next_corner(d), k2, 1.0, out);
-    }
-    return;
-  }
-  if (c1) { extraordinary(ctx, next_corner(c), k1, 1.0, out); return; }
-  if (c2) { extraordinary(ctx, next_corner(d), k2, 1.0, out); return; }
-  add(out, v1, 0.5);
-  add(out, v2, 0.5);
-  add(out, vtx(ctx, c), 0.125);
-  add(out, vtx(ctx, d), 0.125);
-  wing(ctx, prev_corner(c), pf, -1.0 / 16.0, out);
-  wing(ctx, next_corner(c), pf, -1.0 / 16.0, out);
-  wing(ctx, prev_corner(d), pg, -1.0 / 16.0, out);
-  wing(ctx, next_corner(d), pg, -1.0 / 16.0, out);
+  };
+  if (ctx.green && !ctx.green->empty()) run(View<true>(ctx));
+  else run(View<false>(ctx));
 }
 
 }  // namespace iteas

@@ -26,7 +26,8 @@ struct VertexClass {
 struct ButterflyContext {
   const Mesh* mesh = nullptr;
   const CornerTable* ct = nullptr;
-  // sharp[c] != 0 when the edge opposite corner c is a boundary or a crease.
+  // sharp[c] != 0 when the edge opposite corner c is a boundary or a crease;
+  // an empty array means no creases (sharp = boundary).
   const std::vector<uint8_t>* sharp = nullptr;
   VertexClass vclass;
   double tension = 0;  // w of the 10-point stencil, 0 <= w <= 1/16
@@ -59,5 +60,14 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 //    sharp edge replaced by its parallelogram completion (the point a regular
 //    planar grid would have there), so flat regions stay flat.
 void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out);
+
+// The same rule applied to |positions| (3 floats per vertex) without building
+// the term list. Equal to the sum of butterfly_stencil's terms up to rounding
+// (the regular case sums by weight class); every refinement path computes
+// positions with it, so the paths agree bit for bit.
+void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positions, float out[3]);
+// butterfly_point for |count| edges at once: out[3 i .. 3 i + 2] for corners[i].
+void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
+                      float* out);
 
 }  // namespace iteas

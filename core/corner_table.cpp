@@ -13,7 +13,7 @@ namespace {
 struct VertexCorners {
   std::vector<int32_t> offset;  // nv + 1
   std::vector<int32_t> corners;
-  void build(const std::vector<int32_t>& corner_vertex, int32_t nv) {
+  void build(const Array<int32_t>& corner_vertex, int32_t nv) {
     offset.assign(size_t(nv) + 1, 0);
     for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
     for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
@@ -28,7 +28,7 @@ struct VertexCorners {
 
 TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) {
   TopologyReport report;
-  const std::vector<int32_t>& cv = mesh.corner_vertex;
+  const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
   VertexCorners vc;
   vc.build(cv, mesh.num_vertices());

@@ -46,12 +46,13 @@ class CornerTable {
     return o < 0 ? -1 : prev_corner(o);
   }
 
-  std::vector<int32_t>& opposites() { return opposite_; }
-  const std::vector<int32_t>& opposites() const { return opposite_; }
+  Array<int32_t>& opposites() { return opposite_; }
+  const Array<int32_t>& opposites() const { return opposite_; }
   std::vector<int32_t>& vertex_corners() { return vertex_corner_; }
+  const std::vector<int32_t>& vertex_corners() const { return vertex_corner_; }
 
  private:
-  std::vector<int32_t> opposite_;
+  Array<int32_t> opposite_;
   std::vector<int32_t> vertex_corner_;
 };
 

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <numeric>
 #include <unordered_map>
 
@@ -13,8 +14,8 @@
 namespace iteas {
 namespace {
 
-template <typename T>
-int64_t vbytes(const std::vector<T>& v) { return int64_t(v.capacity() * sizeof(T)); }
+template <typename T, typename A>
+int64_t vbytes(const std::vector<T, A>& v) { return int64_t(v.capacity() * sizeof(T)); }
 
 // Fixed-size chunks make prefix sums (and so all numbering) independent of
 // the thread count.
@@ -86,6 +87,9 @@ struct State {
   ButterflyContext bctx;
   int threads = 1;
   int64_t peak = 0;
+  // The uniform level derived sharp flags and vertex classes of the new level
+  // by arithmetic (valid only without creases, which depend on geometry).
+  bool classes_valid = false;
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
@@ -97,11 +101,9 @@ void note_peak(State& s, const Mesh& m, int64_t extra) {
 
 // Applies the Butterfly stencil of the edge at corner c to the new vertex nv.
 void apply_stencil(Mesh& m, const ButterflyContext& ctx, int32_t c, int32_t nv, std::vector<StencilTerm>& terms) {
-  butterfly_stencil(ctx, c, terms);
-  double p[3] = {0, 0, 0};
-  for (const StencilTerm& t : terms)
-    for (int k = 0; k < 3; ++k) p[k] += t.weight * m.positions[3 * size_t(t.vertex) + k];
-  for (int k = 0; k < 3; ++k) m.positions[3 * size_t(nv) + k] = float(p[k]);
+  butterfly_point(ctx, c, m.positions.data(), &m.positions[3 * size_t(nv)]);
+  if (m.vertex_channels.empty()) return;
+  butterfly_stencil(ctx, c, terms);  // the same rule for the morph deltas
   for (VertexChannel& vc : m.vertex_channels) {
     double d[3] = {0, 0, 0};
     for (const StencilTerm& t : terms)
@@ -122,15 +124,17 @@ void grow_wedges(Mesh& m, int64_t nw) {
 
 // Prepares the per-level analysis on the current mesh (ct must be valid).
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
-  if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
-  else std::vector<float>().swap(s.theta);
-  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
   s.bctx.mesh = &m;
   s.bctx.ct = &s.ct;
   s.bctx.sharp = &s.sharp;
   s.bctx.tension = o.tension;
-  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads);
   s.bctx.green = &s.green;
+  if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
+  else std::vector<float>().swap(s.theta);
+  if (s.classes_valid && !need_theta) return;  // derived by the uniform level
+  s.classes_valid = false;
+  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
+  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads);
   if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
 }
 
@@ -141,27 +145,29 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
 // parent vertex j at local corner j, child 3 is the centre; the half of the
 // parent edge opposite corner k next to vertex k+1 (k+2) is the edge opposite
 // local corner k of child k+1 (k+2).
-void uniform_level(State& s, Mesh& m, LevelStats& ls) {
+void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
-  const std::vector<int32_t>& opp = s.ct.opposites();
-  auto canonical = [&](int64_t c) { return opp[c] < 0 || c < opp[c]; };
+  const int32_t* opp = s.ct.opposites().data();
+  auto canonical = [opp](int64_t c) { return opp[c] < 0 || c < opp[c]; };
+  derive_classes = derive_classes && s.green.empty();
 
   // Topology pass 1: number edges (canonical corners) in corner order.
   const int64_t chunks = (nc + kChunk - 1) / kChunk;
   std::vector<int64_t> edges_in(chunks + 1, 0), wedges_in(chunks + 1, 0);
   const bool wedges = m.has_wedges();
+  const int32_t* cw_old = wedges ? m.corner_wedge.data() : nullptr;
+  // Does the edge at corner c carry the same two wedges on both sides?
+  auto shared = [cw_old](int32_t c, int32_t o) {
+    return cw_old[next_corner(c)] == cw_old[prev_corner(o)] && cw_old[prev_corner(c)] == cw_old[next_corner(o)];
+  };
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
       int64_t ne = 0, nw = 0;
       for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
         if (!canonical(c)) continue;
         ++ne;
-        if (!wedges) continue;
-        const int32_t o = opp[c];
-        const bool shared = o >= 0 && m.corner_wedge[next_corner(int32_t(c))] == m.corner_wedge[prev_corner(o)] &&
-                            m.corner_wedge[prev_corner(int32_t(c))] == m.corner_wedge[next_corner(o)];
-        nw += (o < 0 || shared) ? 1 : 2;
+        if (wedges) nw += (opp[c] < 0 || shared(int32_t(c), opp[c])) ? 1 : 2;
       }
       edges_in[k + 1] = ne;
       wedges_in[k + 1] = nw;
@@ -173,106 +179,91 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
   }
   const int64_t ne = edges_in[chunks];
   const int32_t nw0 = m.wedge_count();
-  std::vector<int32_t> evert(nc), ewedge(wedges ? nc : 0);
+  // Every entry of these is written below: no zero fill.
+  Array<int32_t> evert(nc), ewedge(wedges ? nc : 0);
   grow_vertices(m, int64_t(nv) + ne);
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
+  VertexClass& vclass = s.bctx.vclass;
+  if (derive_classes) {
+    vclass.valence.resize(size_t(nv) + ne);
+    vclass.complete.resize(size_t(nv) + ne);
+  }
 
-  // Data pass: stencils from the old level; new wedges blended per side.
+  // Data pass: stencils from the old level, a chunk of edges at a time; new
+  // wedges blended per side.
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
+    std::unique_ptr<int32_t[]> list(new int32_t[kChunk]);
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
-      int64_t id = nv + edges_in[k], wid = nw0 + wedges_in[k];
-      for (int64_t ci = k * kChunk, end = std::min(nc, (k + 1) * kChunk); ci < end; ++ci) {
-        if (!canonical(ci)) continue;
-        const int32_t c = int32_t(ci), o = opp[c], v = int32_t(id++);
+      int64_t n = 0;
+      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c)
+        if (canonical(c)) list[n++] = int32_t(c);
+      const int32_t first = int32_t(nv + edges_in[k]);
+      if (m.vertex_channels.empty()) {
+        butterfly_points(s.bctx, list.get(), n, m.positions.data(), &m.positions[3 * size_t(first)]);
+      } else {
+        for (int64_t i = 0; i < n; ++i) apply_stencil(m, s.bctx, list[i], first + int32_t(i), terms);
+      }
+      for (int64_t i = 0; i < n; ++i) {
+        const int32_t c = list[i], o = opp[c], v = first + int32_t(i);
         evert[c] = v;
-        apply_stencil(m, s.bctx, c, v, terms);
-        if (!wedges) continue;
-        const int32_t wf = int32_t(wid++);
+        if (o >= 0) evert[o] = v;
+        if (derive_classes) {
+          // A midpoint of an interior edge has a closed fan of six faces; of a
+          // boundary edge, an open fan of three (valence 4).
+          vclass.valence[v] = o >= 0 ? 6 : 4;
+          vclass.complete[v] = o >= 0;
+        }
+      }
+      if (!wedges) continue;
+      int32_t wid = int32_t(nw0 + wedges_in[k]);
+      for (int64_t i = 0; i < n; ++i) {
+        const int32_t c = list[i], o = opp[c], v = first + int32_t(i);
+        const int32_t wf = wid++;
         m.wedge_vertex[wf] = v;
-        blend_wedge(m, wf, m.corner_wedge[next_corner(c)], m.corner_wedge[prev_corner(c)]);
+        blend_wedge(m, wf, cw_old[next_corner(c)], cw_old[prev_corner(c)]);
         ewedge[c] = wf;
         if (o < 0) continue;
-        const bool shared = m.corner_wedge[next_corner(c)] == m.corner_wedge[prev_corner(o)] &&
-                            m.corner_wedge[prev_corner(c)] == m.corner_wedge[next_corner(o)];
-        if (shared) { ewedge[o] = wf; continue; }
-        const int32_t wg = int32_t(wid++);
+        if (shared(c, o)) { ewedge[o] = wf; continue; }
+        const int32_t wg = wid++;
         m.wedge_vertex[wg] = v;
-        blend_wedge(m, wg, m.corner_wedge[next_corner(o)], m.corner_wedge[prev_corner(o)]);
+        blend_wedge(m, wg, cw_old[next_corner(o)], cw_old[prev_corner(o)]);
         ewedge[o] = wg;
       }
     }
   });
-  parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
-    for (int64_t c = b; c < e; ++c)
-      if (!canonical(c)) evert[c] = evert[opp[c]];
-  });
 
-  // Topology pass 2: children.
-  std::vector<int32_t> cv(12 * size_t(nf)), cw(wedges ? 12 * size_t(nf) : 0);
+  // Topology pass 2: children. Then the new vertices' fan corners, while the
+  // old opposites still tell canonical corners; then the old connectivity and
+  // the edge maps go before the children's opposites are made (peak memory).
+  Array<int32_t> cv(12 * size_t(nf)), cw(wedges ? 12 * size_t(nf) : 0);
   std::vector<int32_t> fg(m.face_group.empty() ? 0 : 4 * size_t(nf));
+  const int32_t* pcv = m.corner_vertex.data();
   parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    int32_t* ccv = cv.data();
+    int32_t* ccw = cw.data();
     for (int64_t f = b; f < e; ++f) {
       const size_t p = 3 * size_t(f), q = 12 * size_t(f);
-      for (int j = 0; j < 3; ++j) {
-        const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
-        cv[q + 3 * j + j] = m.corner_vertex[p + j];
-        cv[q + 3 * j + j1] = evert[p + j2];
-        cv[q + 3 * j + j2] = evert[p + j1];
-        cv[q + 9 + j] = evert[p + j];
-        if (wedges) {
-          cw[q + 3 * j + j] = m.corner_wedge[p + j];
-          cw[q + 3 * j + j1] = ewedge[p + j2];
-          cw[q + 3 * j + j2] = ewedge[p + j1];
-          cw[q + 9 + j] = ewedge[p + j];
-        }
+      const int32_t m0 = evert[p], m1 = evert[p + 1], m2 = evert[p + 2];
+      // Child j keeps vertex j; the centre child is (m0, m1, m2).
+      ccv[q + 0] = pcv[p];     ccv[q + 1] = m2;         ccv[q + 2] = m1;
+      ccv[q + 3] = m2;         ccv[q + 4] = pcv[p + 1]; ccv[q + 5] = m0;
+      ccv[q + 6] = m1;         ccv[q + 7] = m0;         ccv[q + 8] = pcv[p + 2];
+      ccv[q + 9] = m0;         ccv[q + 10] = m1;        ccv[q + 11] = m2;
+      if (wedges) {
+        const int32_t w0 = ewedge[p], w1 = ewedge[p + 1], w2 = ewedge[p + 2];
+        ccw[q + 0] = cw_old[p];  ccw[q + 1] = w2;            ccw[q + 2] = w1;
+        ccw[q + 3] = w2;         ccw[q + 4] = cw_old[p + 1]; ccw[q + 5] = w0;
+        ccw[q + 6] = w1;         ccw[q + 7] = w0;            ccw[q + 8] = cw_old[p + 2];
+        ccw[q + 9] = w0;         ccw[q + 10] = w1;           ccw[q + 11] = w2;
       }
       if (!fg.empty()) for (int j = 0; j < 4; ++j) fg[4 * size_t(f) + j] = m.face_group[f];
     }
   });
-  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
-  // Keep, per canonical corner, its new vertex (-1 elsewhere) for the vertex corners.
-  std::vector<int32_t> opp_old_canonical;
-  opp_old_canonical.swap(evert);
-  parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
-    for (int64_t c = b; c < e; ++c)
-      if (!canonical(c)) opp_old_canonical[c] = -1;
-  });
-  std::vector<int32_t>().swap(ewedge);
-  m.corner_vertex.swap(cv);
-  std::vector<int32_t>().swap(cv);
-  if (wedges) { m.corner_wedge.swap(cw); std::vector<int32_t>().swap(cw); }
-  if (!fg.empty()) m.face_group.swap(fg);
-  std::vector<int32_t>().swap(fg);
-  std::vector<float>().swap(s.theta);
-  std::vector<uint8_t>().swap(s.sharp);
-  std::vector<int32_t>().swap(s.bctx.vclass.valence);
-  std::vector<uint8_t>().swap(s.bctx.vclass.complete);
 
-  // Child opposites from the parent's alone.
-  std::vector<int32_t> nopp(12 * size_t(nf));
-  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-    for (int64_t f = b; f < e; ++f) {
-      const int64_t centre = 4 * f + 3;
-      for (int k = 0; k < 3; ++k) {
-        const int64_t child = 4 * f + k;
-        nopp[3 * child + k] = int32_t(3 * centre + k);
-        nopp[3 * centre + k] = int32_t(3 * child + k);
-        const int32_t d = opp[3 * f + k];
-        const int64_t a = 3 * (4 * f + (k + 1) % 3) + k, c = 3 * (4 * f + (k + 2) % 3) + k;
-        if (d < 0) { nopp[a] = nopp[c] = -1; continue; }
-        const int64_t g = d / 3, l = d % 3;
-        nopp[a] = int32_t(3 * (4 * g + (l + 2) % 3) + l);
-        nopp[c] = int32_t(3 * (4 * g + (l + 1) % 3) + l);
-      }
-    }
-  });
-  note_peak(s, m, vbytes(nopp));
-  s.ct.opposites().swap(nopp);
-  std::vector<int32_t>().swap(nopp);
-  // Vertex corners follow too: an old vertex's corner k of face f becomes
-  // corner k of child k (still the start of an open fan); the new vertex on
-  // the edge opposite corner k starts its fan at corner k+1 of child k+2.
+  // Vertex corners follow: an old vertex's corner k of face f becomes corner
+  // k of child k (still the start of an open fan); the new vertex on the edge
+  // opposite corner k starts its fan at corner k+1 of child k+2.
   std::vector<int32_t>& vc = s.ct.vertex_corners();
   vc.resize(size_t(nv) + ne);
   parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
@@ -285,10 +276,54 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls) {
     for (int64_t f = b; f < e; ++f)
       for (int k = 0; k < 3; ++k) {
         const int64_t c = 3 * f + k;
-        if (opp_old_canonical[c] >= 0) vc[opp_old_canonical[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+        if (canonical(c)) vc[evert[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
       }
   });
-  std::vector<int32_t>().swap(opp_old_canonical);
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
+  Array<int32_t>().swap(evert);
+  Array<int32_t>().swap(ewedge);
+  m.corner_vertex.swap(cv);
+  Array<int32_t>().swap(cv);
+  if (wedges) { m.corner_wedge.swap(cw); Array<int32_t>().swap(cw); }
+  if (!fg.empty()) m.face_group.swap(fg);
+  std::vector<int32_t>().swap(fg);
+
+  // Children's opposites from the parent's alone.
+  Array<int32_t> nopp(12 * size_t(nf));
+  static constexpr int kNext[3] = {1, 2, 0}, kPrev[3] = {2, 0, 1};
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    int32_t* no = nopp.data();
+    for (int64_t f = b; f < e; ++f) {
+      const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
+      for (int k = 0; k < 3; ++k) {
+        // Inner edges: child k's corner k faces the centre's corner k.
+        no[base + 3 * k + k] = base + 9 + k;
+        no[base + 9 + k] = base + 3 * k + k;
+        // The halves of the parent edge opposite corner k lie in children
+        // k+1 and k+2 at local corner k; their twins in the neighbour's children.
+        const int32_t d = opp[p + k];
+        const int32_t a = base + 3 * kNext[k] + k, c = base + 3 * kPrev[k] + k;
+        if (d < 0) {
+          no[a] = no[c] = -1;
+        } else {
+          const int32_t l = d % 3, g4 = 4 * (d - l);  // 12 (d / 3) = 4 (d - l)
+          no[a] = g4 + 3 * kPrev[l] + l;
+          no[c] = g4 + 3 * kNext[l] + l;
+        }
+      }
+    }
+  });
+  note_peak(s, m, vbytes(nopp));
+  s.ct.opposites().swap(nopp);
+  Array<int32_t>().swap(nopp);
+  std::vector<float>().swap(s.theta);
+  // Without creases the next level's sharp edges are its boundary: no flags.
+  std::vector<uint8_t>().swap(s.sharp);
+  if (!derive_classes) {
+    std::vector<int32_t>().swap(vclass.valence);
+    std::vector<uint8_t>().swap(vclass.complete);
+  }
+  s.classes_valid = derive_classes;
   if (!s.green.empty()) s.green.assign(m.num_faces(), 0);
 
   ls.faces_selected = nf;
@@ -367,7 +402,8 @@ void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& 
 struct Emitter {
   Mesh& m;
   bool wedges, groups;
-  std::vector<int32_t> cv, cw, fg;
+  Array<int32_t> cv, cw;
+  std::vector<int32_t> fg;
   std::vector<uint8_t> green;
   LevelStats& ls;
 
@@ -413,7 +449,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const bool wedges = m.has_wedges();
-  const std::vector<int32_t>& opp = s.ct.opposites();
+  const Array<int32_t>& opp = s.ct.opposites();
 
   // Topology: number the split edges and their wedges in corner order.
   std::vector<int32_t> evert(nc, -1), ewedge(nc, -1), edges;
@@ -630,7 +666,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   State s;
   s.threads = o.threads <= 0 ? hardware_threads() : o.threads;
   // Wedges without channels carry nothing: drop them (every vertex its own wedge).
-  if (m.channels.empty()) { std::vector<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }
+  if (m.channels.empty()) { Array<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }
   if (std::all_of(m.face_group.begin(), m.face_group.end(), [](int32_t g) { return g == 0; }))
     std::vector<int32_t>().swap(m.face_group);
 
@@ -673,7 +709,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path) {
-        uniform_level(s, m, ls);
+        uniform_level(s, m, ls, crease <= 0);
       } else {
         selected.resize(m.num_faces());
         std::iota(selected.begin(), selected.end(), 0);

@@ -25,7 +25,7 @@ TEST(CornerTable, InvariantsOnEveryMesh) {
       EXPECT_EQ(rep.boundary_edges, brute.boundary_corners);
       EXPECT_EQ(rep.non_manifold_edges, brute.non_manifold);
       EXPECT_EQ(rep.orientation_conflicts, brute.conflicts);
-      const std::vector<int32_t>& cv = m.corner_vertex;
+      const Array<int32_t>& cv = m.corner_vertex;
       for (int32_t c = 0; c < ct.num_corners(); ++c) {
         const int32_t d = ct.opposite(c);
         if (d < 0) continue;

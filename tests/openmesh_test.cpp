@@ -35,7 +35,7 @@ std::vector<double> openmesh_refine(const Mesh& m, int levels) {
 
 // Max over our vertices of the distance to the nearest OpenMesh vertex and
 // vice versa (vertex orders differ), via a uniform grid.
-double symmetric_max_distance(const std::vector<double>& a, const std::vector<float>& b, double cell) {
+double symmetric_max_distance(const std::vector<double>& a, const Array<float>& b, double cell) {
   auto key = [&](double x, double y, double z) {
     return (int64_t(std::floor(x / cell)) * 73856093) ^ (int64_t(std::floor(y / cell)) * 19349663) ^
            (int64_t(std::floor(z / cell)) * 83492791);
