@@ -10,17 +10,26 @@ namespace {
 
 // Corners grouped by vertex in two passes (count, prefix sum, fill), as
 // meshoptimizer builds adjacency.
+// Next to each corner, the vertex its outgoing edge leads to, so the edge
+// matching below reads one contiguous run per vertex.
 struct VertexCorners {
   std::vector<int32_t> offset;  // nv + 1
-  std::vector<int32_t> corners;
+  Array<int32_t> corners;
+  Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
   void build(const Array<int32_t>& corner_vertex, int32_t nv) {
     offset.assign(size_t(nv) + 1, 0);
     for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
     for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
     corners.resize(corner_vertex.size());
+    nexts.resize(corner_vertex.size());
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
-    for (size_t c = 0; c < corner_vertex.size(); ++c)
-      corners[fill[corner_vertex[c]]++] = static_cast<int32_t>(c);
+    const int32_t nc = static_cast<int32_t>(corner_vertex.size());
+    for (int32_t f = 0; f < nc; f += 3)
+      for (int k = 0; k < 3; ++k) {
+        const int32_t i = fill[corner_vertex[f + k]]++;
+        corners[i] = f + k;
+        nexts[i] = corner_vertex[f + (k + 1) % 3];
+      }
   }
 };
 
@@ -42,14 +51,10 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       const int32_t c = static_cast<int32_t>(ci);
       const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
       int32_t reverse = 0, same = 0, match = -1;
-      for (int32_t i = vc.offset[b]; i < vc.offset[b + 1]; ++i) {
-        const int32_t y = vc.corners[i];
-        if (cv[next_corner(y)] == a) { ++reverse; match = prev_corner(y); }
-      }
-      for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i) {
-        const int32_t y = vc.corners[i];
-        if (cv[next_corner(y)] == b) ++same;  // includes c's own face
-      }
+      for (int32_t i = vc.offset[b]; i < vc.offset[b + 1]; ++i)
+        if (vc.nexts[i] == a) { ++reverse; match = prev_corner(vc.corners[i]); }
+      for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i)
+        same += vc.nexts[i] == b;  // includes c's own face
       if (reverse == 1 && same == 1) {
         opposite_[c] = match;
       } else if (reverse + same >= 3) {

@@ -90,6 +90,9 @@ struct State {
   // The uniform level derived sharp flags and vertex classes of the new level
   // by arithmetic (valid only without creases, which depend on geometry).
   bool classes_valid = false;
+  // Adaptive modes: the squared sine of the smallest angle new triangles may
+  // have (half the input's smallest angle); 0 = no guard (uniform mode).
+  double floor_sin2 = 0;
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
@@ -340,8 +343,113 @@ struct Plan {
   int64_t triangles = 0;
 };
 
+// Is the smallest angle of triangle (p, q, r) under the floor whose squared
+// sine is sin2? The smallest angle lies opposite the shortest edge and is at
+// most 60°, so sin² orders it: |cross|² e_min < sin2 e0 e1 e2, no trigonometry.
+bool below_floor(const double* p, const double* q, const double* r, double sin2) {
+  double u[3], w[3], z[3];
+  for (int i = 0; i < 3; ++i) { u[i] = q[i] - p[i]; w[i] = r[i] - p[i]; z[i] = r[i] - q[i]; }
+  const double cr[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
+  const double c2 = cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2];
+  const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
+  const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+  const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+  const double prod = e0 * e1 * e2;
+  return prod <= 0 || c2 * std::min(e0, std::min(e1, e2)) < sin2 * prod;
+}
+
+// Displacement steps of the sliver guard (1, 1/2, 1/4, 1/8, then 0).
+constexpr int kGuardSteps = 4;
+
+void load_point(const Mesh& m, int32_t v, double* out) {
+  for (int i = 0; i < 3; ++i) out[i] = m.positions[3 * size_t(v) + i];
+}
+
+// Would bisecting face f at its one split edge make a triangle whose smallest
+// angle is under the floor — at the Butterfly point that edge will get, or at
+// the edge's midpoint (where the sliver guard may move it)? Then the closure
+// splits f 1 -> 4 instead (its children keep its shape).
+bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint8_t>& split) {
+  if (s.floor_sin2 <= 0) return false;
+  const int k = split[3 * f] ? 0 : (split[3 * f + 1] ? 1 : 2);
+  int32_t c = 3 * f + k;
+  const int32_t o = s.ct.opposite(c);
+  if (o >= 0 && o < c) c = o;  // the stencil as the level will evaluate it
+  float bf[3];
+  butterfly_point(s.bctx, c, m.positions.data(), bf);
+  double apex[3], a[3], b[3], bc[3], ca[3];
+  load_point(m, m.corner_vertex[3 * f + k], apex);
+  load_point(m, m.corner_vertex[3 * f + (k + 1) % 3], a);
+  load_point(m, m.corner_vertex[3 * f + (k + 2) % 3], b);
+  for (int i = 0; i < 3; ++i) { bc[i] = 0.5 * (b[i] + apex[i]); ca[i] = 0.5 * (apex[i] + a[i]); }
+  const double f2 = s.floor_sin2;
+  // Every point the guard may leave on the edge (t = 1, 1/2, ..., 0 of the
+  // displacement). For each: the two green triangles, and the children of the
+  // later merge and 1 -> 4 split around this (then fixed) point, (a, m, m_ca),
+  // (m, b, m_bc), (m_bc, m_ca, m), with the other edges' points at their midpoints.
+  for (int step = 0; step <= kGuardSteps; ++step) {
+    const double t = step == kGuardSteps ? 0.0 : std::ldexp(1.0, -step);
+    double mid[3];
+    for (int i = 0; i < 3; ++i) mid[i] = 0.5 * (a[i] + b[i]) + t * (bf[i] - 0.5 * (a[i] + b[i]));
+    if (below_floor(a, mid, apex, f2) || below_floor(mid, b, apex, f2) || below_floor(a, mid, ca, f2) ||
+        below_floor(mid, b, bc, f2) || below_floor(bc, ca, mid, f2))
+      return true;
+  }
+  return false;
+}
+
+// The sliver guard of adaptive levels: a new triangle whose smallest angle is
+// under the floor has the Butterfly displacement of its new vertices (from the
+// edge midpoint) halved, round after round (1, 1/2, 1/4, 1/8, then 0: the
+// midpoint, where a 1 -> 4 split reproduces its parent's shape). Rounds see the
+// whole level at once, so the result does not depend on any order or on the
+// thread count. Returns how many new vertices were moved.
+int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, const std::vector<int32_t>& edges,
+                      int32_t nv) {
+  const int64_t ne = int64_t(edges.size());
+  std::vector<double> lin(3 * size_t(ne)), disp(3 * size_t(ne));
+  for (int64_t i = 0; i < ne; ++i) {
+    const int32_t c = edges[i];
+    double a[3], b[3], p[3];
+    load_point(m, old_cv[next_corner(c)], a);
+    load_point(m, old_cv[prev_corner(c)], b);
+    load_point(m, nv + int32_t(i), p);
+    for (int k = 0; k < 3; ++k) {
+      lin[3 * i + k] = 0.5 * (a[k] + b[k]);
+      disp[3 * i + k] = p[k] - lin[3 * i + k];
+    }
+  }
+  constexpr int kSteps = kGuardSteps;
+  std::vector<uint8_t> step(ne, 0), mark(ne);
+  const int32_t nf = m.num_faces();
+  // Each round moves every marked vertex one step; a vertex stops at the
+  // midpoint, so rounds end when no poor face has a vertex left to move.
+  for (int round = 0; round < 8 * kSteps; ++round) {
+    std::fill(mark.begin(), mark.end(), 0);
+    bool any = false;
+    for (int32_t f = 0; f < nf; ++f) {
+      const int32_t* v = &m.corner_vertex[3 * size_t(f)];
+      if (v[0] < nv && v[1] < nv && v[2] < nv) continue;  // an old face
+      double p[3][3];
+      for (int k = 0; k < 3; ++k) load_point(m, v[k], p[k]);
+      if (!below_floor(p[0], p[1], p[2], s.floor_sin2)) continue;
+      for (int k = 0; k < 3; ++k)
+        if (v[k] >= nv && step[v[k] - nv] < kSteps) { mark[v[k] - nv] = 1; any = true; }
+    }
+    if (!any) break;
+    for (int64_t i = 0; i < ne; ++i) {
+      if (!mark[i]) continue;
+      const double t = ++step[i] >= kSteps ? 0.0 : std::ldexp(1.0, -step[i]);
+      for (int k = 0; k < 3; ++k)
+        m.positions[3 * (size_t(nv) + i) + k] = float(lin[3 * i + k] + t * disp[3 * i + k]);
+    }
+  }
+  return std::count_if(step.begin(), step.end(), [](uint8_t x) { return x > 0; });
+}
+
 // Closure of a selection (least fixed point, so independent of order):
-//  * a normal face with 2 split edges gets its third split (1 -> 4);
+//  * a normal face with 2 split edges gets its third split (1 -> 4), and so
+//    does one with 1 split edge whose green bisection would be a sliver;
 //  * a green pair with any split edge or a selected member is merged back
 //    into its parent, whose two other edges then split (it is split 1 -> 4).
 void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& selected, Plan& plan) {
@@ -377,7 +485,7 @@ void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& 
       mark(3 * first + 1);        // parent edge (c, a)
     } else {
       const int sc = plan.split[3 * f] + plan.split[3 * f + 1] + plan.split[3 * f + 2];
-      if (sc == 2) for (int k = 0; k < 3; ++k) mark(3 * f + k);
+      if (sc == 2 || (sc == 1 && poor_green(s, m, f, plan.split))) for (int k = 0; k < 3; ++k) mark(3 * f + k);
     }
   }
   // The inner edge of a merged pair disappears with it.
@@ -546,6 +654,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
   if (wedges) m.corner_wedge.swap(em.cw);
   if (em.groups) m.face_group.swap(em.fg);
   s.green.swap(em.green);
+  if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
   ls.vertices_added = next_v - nv;
   s.ct.build(m, false, s.threads);
 }
@@ -679,14 +788,24 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   const bool adaptive = o.mode != Mode::kUniform;
 
   // Threshold and the "before" picture, on the input.
-  edge_angles(m, s.ct, s.theta, s.threads);
+  // (Uniform refinement reports the mean θ as its T; the benchmark switch
+  // skips all of it.)
   const bool statistics = hooks.statistics || adaptive;
-  double T_input = compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
-  if (o.mode == Mode::kUniform) T_input = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean;
+  double T_input = 0;
+  if (statistics) {
+    edge_angles(m, s.ct, s.theta, s.threads);
+    T_input = o.mode == Mode::kUniform ? summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean
+                                       : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
+    stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
+    stats.quality_before = triangle_quality(m, s.threads);
+  }
   stats.threshold = T_input;
-  stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
-  if (statistics) stats.quality_before = triangle_quality(m, s.threads);
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
+  if (adaptive) {
+    // (0.1 % above half, so rounding of the output floats cannot dip under it.)
+    const double floor_rad = 0.5005 * stats.quality_before.min_angle * (M_PI / 180.0);
+    s.floor_sin2 = std::sin(floor_rad) * std::sin(floor_rad);
+  }
   note_peak(s, m, 0);
 
   const double t1 = now();

@@ -29,6 +29,7 @@ struct LevelStats {
   int64_t green_splits = 0;   // faces bisected to close a crack
   int64_t greens_merged = 0;  // green pairs merged back into their parent
   int64_t vertices_added = 0;
+  int64_t vertices_guarded = 0;  // new vertices pulled toward their edge midpoint (sliver guard)
   int64_t triangles_after = 0;
   double mean_theta_after = 0, max_theta_after = 0;
   double ms = 0;

@@ -78,6 +78,7 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
       sum.green_splits += ls.green_splits;
       sum.greens_merged += ls.greens_merged;
       sum.vertices_added += ls.vertices_added;
+      sum.vertices_guarded += ls.vertices_guarded;
       sum.triangles_after += ls.triangles_after;
       theta_sum += ls.mean_theta_after * double(ls.triangles_after);
       theta_weight += double(ls.triangles_after);
@@ -87,7 +88,7 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
     levels.push_back({{"level", sum.level}, {"threshold", round3(sum.threshold)}, {"faces_selected", sum.faces_selected},
                       {"red_splits", sum.red_splits}, {"green_splits", sum.green_splits},
                       {"greens_merged", sum.greens_merged}, {"vertices_added", sum.vertices_added},
-                      {"triangles_after", sum.triangles_after},
+                      {"vertices_guarded", sum.vertices_guarded}, {"triangles_after", sum.triangles_after},
                       {"mean_theta_after", round3(theta_weight > 0 ? theta_sum / theta_weight : 0)},
                       {"max_theta_after", round3(sum.max_theta_after)}, {"ms", round3(sum.ms)}});
   }
