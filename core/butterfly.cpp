@@ -315,7 +315,10 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
 #if defined(__SSE2__)
   // (x, y) in one register, z in another: the same IEEE double arithmetic as
   // the scalar branch, lane by lane.
-  auto xy = [&](int i) { return _mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(q[i])))); };
+  // (Unaligned 8-byte loads and stores: positions are 4-byte aligned.)
+  auto xy = [&](int i) {
+    return _mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i_u*>(q[i]))));
+  };
   auto zz = [&](int i) { return _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(q[i] + 2)); };
   const __m128d e_xy = _mm_add_pd(xy(0), xy(1)), f_xy = _mm_add_pd(xy(2), xy(3));
   const __m128d g_xy = _mm_add_pd(_mm_add_pd(_mm_add_pd(xy(4), xy(5)), xy(6)), xy(7));
@@ -324,7 +327,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   const __m128d h = _mm_set1_pd(0.5), e = _mm_set1_pd(0.125), s = _mm_set1_pd(-1.0 / 16.0);
   const __m128d p_xy = _mm_add_pd(_mm_add_pd(_mm_mul_pd(h, e_xy), _mm_mul_pd(e, f_xy)), _mm_mul_pd(s, g_xy));
   const __m128d p_z = _mm_add_sd(_mm_add_sd(_mm_mul_sd(h, e_z), _mm_mul_sd(e, f_z)), _mm_mul_sd(s, g_z));
-  _mm_storel_pi(reinterpret_cast<__m64*>(out), _mm_cvtpd_ps(p_xy));
+  _mm_storel_epi64(reinterpret_cast<__m128i_u*>(out), _mm_castps_si128(_mm_cvtpd_ps(p_xy)));
   _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), p_z));
 #else
   for (int k = 0; k < 3; ++k) {

@@ -1,6 +1,7 @@
 #include "core/refine.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -407,18 +408,9 @@ bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint
 int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, const std::vector<int32_t>& edges,
                       int32_t nv) {
   const int64_t ne = int64_t(edges.size());
-  std::vector<double> lin(3 * size_t(ne)), disp(3 * size_t(ne));
-  for (int64_t i = 0; i < ne; ++i) {
-    const int32_t c = edges[i];
-    double a[3], b[3], p[3];
-    load_point(m, old_cv[next_corner(c)], a);
-    load_point(m, old_cv[prev_corner(c)], b);
-    load_point(m, nv + int32_t(i), p);
-    for (int k = 0; k < 3; ++k) {
-      lin[3 * i + k] = 0.5 * (a[k] + b[k]);
-      disp[3 * i + k] = p[k] - lin[3 * i + k];
-    }
-  }
+  // Butterfly points of the vertices moved so far (few): memory stays at two
+  // bytes per new vertex however large the level.
+  std::unordered_map<int64_t, std::array<float, 3>> butterfly;
   constexpr int kSteps = kGuardSteps;
   std::vector<uint8_t> step(ne, 0), mark(ne);
   const int32_t nf = m.num_faces();
@@ -439,9 +431,17 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
     if (!any) break;
     for (int64_t i = 0; i < ne; ++i) {
       if (!mark[i]) continue;
+      float* p = &m.positions[3 * (size_t(nv) + i)];
+      if (step[i] == 0) butterfly.emplace(i, std::array<float, 3>{p[0], p[1], p[2]});
+      const std::array<float, 3>& bf = butterfly.at(i);
       const double t = ++step[i] >= kSteps ? 0.0 : std::ldexp(1.0, -step[i]);
-      for (int k = 0; k < 3; ++k)
-        m.positions[3 * (size_t(nv) + i) + k] = float(lin[3 * i + k] + t * disp[3 * i + k]);
+      double a[3], b[3];
+      load_point(m, old_cv[next_corner(edges[i])], a);
+      load_point(m, old_cv[prev_corner(edges[i])], b);
+      for (int k = 0; k < 3; ++k) {
+        const double lin = 0.5 * (a[k] + b[k]);
+        p[k] = float(lin + t * (double(bf[k]) - lin));
+      }
     }
   }
   return std::count_if(step.begin(), step.end(), [](uint8_t x) { return x > 0; });
