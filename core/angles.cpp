@@ -182,6 +182,18 @@ double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const Corn
   return values[rank];
 }
 
+double smallest_angle_sin2(const double* p, const double* q, const double* r) {
+  double u[3], w[3], z[3];
+  for (int i = 0; i < 3; ++i) { u[i] = q[i] - p[i]; w[i] = r[i] - p[i]; z[i] = r[i] - q[i]; }
+  const double cr[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
+  const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
+  const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+  const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+  const double prod = e0 * e1 * e2;
+  if (prod <= 0) return -1;
+  return (cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2]) * std::min(e0, std::min(e1, e2)) / prod;
+}
+
 QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // Smallest angle per face; the
   // 1st percentile comes from a histogram of 0.01-degree bins over [0, 60].
@@ -196,23 +208,12 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
     for (int64_t k = b; k < e; ++k) {
       hist[k].assign(kBins, 0);
       for (int32_t f = int32_t(k * kChunk), end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk)); f < end; ++f) {
-        const float* v[3];
-        for (int i = 0; i < 3; ++i) v[i] = p + 3 * size_t(mesh.corner_vertex[3 * size_t(f) + i]);
-        // The smallest angle a is opposite the shortest edge and is at most 60
-        // degrees, so a = asin(2 area / (b c)) with b c = sqrt(l0 l1 l2 / lmin):
-        // no corner selection, no acos, no data-dependent branch.
-        const float e0[3] = {v[2][0] - v[1][0], v[2][1] - v[1][1], v[2][2] - v[1][2]};
-        const float e1[3] = {v[0][0] - v[2][0], v[0][1] - v[2][1], v[0][2] - v[2][2]};
-        const float e2[3] = {v[1][0] - v[0][0], v[1][1] - v[0][1], v[1][2] - v[0][2]};
-        const double l0 = double(e0[0]) * e0[0] + double(e0[1]) * e0[1] + double(e0[2]) * e0[2];
-        const double l1 = double(e1[0]) * e1[0] + double(e1[1]) * e1[1] + double(e1[2]) * e1[2];
-        const double l2 = double(e2[0]) * e2[0] + double(e2[1]) * e2[1] + double(e2[2]) * e2[2];
-        const double lmin = std::min(l0, std::min(l1, l2));
-        if (!(lmin > 0)) continue;  // repeated position: no angles
-        const double cx = double(e1[1]) * e2[2] - double(e1[2]) * e2[1];
-        const double cy = double(e1[2]) * e2[0] - double(e1[0]) * e2[2];
-        const double cz = double(e1[0]) * e2[1] - double(e1[1]) * e2[0];
-        const float sn = float(std::min(1.0, std::sqrt((cx * cx + cy * cy + cz * cz) * lmin / (l0 * l1 * l2))));
+        double v[3][3];
+        for (int i = 0; i < 3; ++i)
+          for (int k = 0; k < 3; ++k) v[i][k] = p[3 * size_t(mesh.corner_vertex[3 * size_t(f) + i]) + k];
+        const double s2 = smallest_angle_sin2(v[0], v[1], v[2]);
+        if (!(s2 >= 0)) continue;  // repeated position: no angles
+        const float sn = float(std::min(1.0, std::sqrt(s2)));
         const float ang = fast_atan2_pos(sn, std::sqrt(std::max(0.0f, 1.0f - sn * sn))) * float(180.0 / M_PI);
         mins[k] = std::min(mins[k], ang);
         hist[k][std::min(kBins - 1, int(ang * 100.0f))]++;

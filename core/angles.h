@@ -52,4 +52,10 @@ struct QualitySummary {
 };
 QualitySummary triangle_quality(const Mesh& mesh, int threads = 1);
 
+// sin² of the smallest angle of triangle (p, q, r): the smallest angle lies
+// opposite the shortest edge and is at most 60°, so it is
+// |cross|² e_min / (e0 e1 e2) with squared edge lengths e — no trigonometry,
+// and sin² orders angles up to 60°. Negative when two points coincide.
+double smallest_angle_sin2(const double* p, const double* q, const double* r);
+
 }  // namespace iteas

@@ -2,10 +2,6 @@
 
 #include <cmath>
 
-#if defined(__SSE2__)
-#include <emmintrin.h>
-#endif
-
 #include "core/parallel.h"
 
 namespace iteas {
@@ -62,32 +58,26 @@ namespace {
 // away and a stencil is a handful of loads.
 template <bool kGreens>
 struct View {
+  const CornerTable* ct;  // fan walks
   const int32_t* cv;
   const int32_t* opp;
-  const int32_t* vertex_corner;
   const uint8_t* sharp;
   const uint8_t* green;
   const int32_t* valence;
   const uint8_t* complete;
-  int32_t num_corners;
   double tension;
   explicit View(const ButterflyContext& ctx)
-      : cv(ctx.mesh->corner_vertex.data()),
+      : ct(ctx.ct),
+        cv(ctx.mesh->corner_vertex.data()),
         opp(ctx.ct->opposites().data()),
-        vertex_corner(ctx.ct->vertex_corners().data()),
         sharp(ctx.sharp && !ctx.sharp->empty() ? ctx.sharp->data() : nullptr),
         green(ctx.green && !ctx.green->empty() ? ctx.green->data() : nullptr),
         valence(ctx.vclass.valence.data()),
         complete(ctx.vclass.complete.data()),
-        num_corners(ctx.ct->num_corners()),
         tension(ctx.tension) {}
   uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
   // No sharp flags (an empty array) means: sharp = boundary.
   bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }
-  int32_t swing_right(int32_t c) const {
-    const int32_t o = opp[next_corner(c)];
-    return o < 0 ? -1 : next_corner(o);
-  }
   // The vertex at corner x as the parent of a green pair sees it: the midpoint
   // corner of each child stands for the parent's opposite vertex.
   int32_t vtx(int32_t x) const {
@@ -149,10 +139,10 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
   for (int j = 0; j < K; ++j) {
     // The bisecting edge (c, m) of a green pair with this vertex as apex is
     // not in the parent's ring: skip it (classify discounted it from K).
-    if (G) while (m.green_of(x) == 2 && x % 3 == 2) x = m.swing_right(x);
+    if (G) while (m.green_of(x) == 2 && x % 3 == 2) x = m.ct->swing_right(x);
     const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
     if (s != 0.0) out(m.cv[next_corner(x)], s * scale);
-    x = m.swing_right(x);
+    x = m.ct->swing_right(x);
   }
 }
 
@@ -196,20 +186,20 @@ ITEAS_INLINE void wing(const View<G>& m, int32_t x, bool parent_view, double w, 
 // |other|, or -1 when v has other than two sharp edges.
 template <bool G>
 int32_t curve_neighbour(const View<G>& m, int32_t v, int32_t other) {
-  const int32_t first = m.vertex_corner[v];
+  const int32_t first = m.ct->vertex_corner(v);
   int32_t found = -1, count = 0, c = first, guard = 0;
   while (c >= 0) {
     if (m.is_sharp(prev_corner(c))) {  // outgoing edge v -> next(c)
       ++count;
       if (m.cv[next_corner(c)] != other) found = m.cv[next_corner(c)];
     }
-    const int32_t s = m.swing_right(c);
+    const int32_t s = m.ct->swing_right(c);
     if (s < 0) {  // open fan: its last incoming edge prev(c) -> v is a boundary
       ++count;
       if (m.cv[prev_corner(c)] != other) found = m.cv[prev_corner(c)];
       break;
     }
-    if (s == first || ++guard > m.num_corners) break;
+    if (s == first || ++guard > m.ct->num_corners()) break;
     c = s;
   }
   return count == 2 ? found : -1;
@@ -254,7 +244,7 @@ void rules(const View<G>& m, int32_t c, Sink& out) {
         // 10-point: the ring neighbours of v1 and v2 straight across from the
         // edge (three steps round a valence-6 ring).
         int32_t x = next_corner(c), y = next_corner(d);
-        for (int j = 0; j < 3; ++j) { x = m.swing_right(x); y = m.swing_right(y); }
+        for (int j = 0; j < 3; ++j) { x = m.ct->swing_right(x); y = m.ct->swing_right(y); }
         out(m.cv[next_corner(x)], w);
         out(m.cv[next_corner(y)], w);
       }
@@ -293,10 +283,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   const int32_t d = m.opp[c];
   if (d < 0 || (m.sharp && m.sharp[c])) return false;
   if (G && (m.green_of(c) | m.green_of(d))) return false;
-  // Corners of both faces from one division each.
-  static constexpr int8_t kNextStep[3] = {1, 1, -2}, kPrevStep[3] = {2, -1, -1};
-  const int32_t kc = c % 3, kd = d % 3;
-  const int32_t nc = c + kNextStep[kc], pc = c + kPrevStep[kc], nd = d + kNextStep[kd], pd = d + kPrevStep[kd];
+  const int32_t nc = next_corner(c), pc = prev_corner(c), nd = next_corner(d), pd = prev_corner(d);
   const int32_t v1 = m.cv[nc], v2 = m.cv[pc];
   if (!(m.complete[v1] & m.complete[v2]) || m.valence[v1] != 6 || m.valence[v2] != 6) return false;
   const int32_t x[4] = {pc, nc, pd, nd};
@@ -312,37 +299,19 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
                        positions + 3 * size_t(m.cv[c]), positions + 3 * size_t(m.cv[d]),
                        positions + 3 * size_t(wv[0]), positions + 3 * size_t(wv[1]),
                        positions + 3 * size_t(wv[2]), positions + 3 * size_t(wv[3])};
-#if defined(__SSE2__)
-  // (x, y) in one register, z in another: the same IEEE double arithmetic as
-  // the scalar branch, lane by lane.
-  // (Unaligned 8-byte loads and stores: positions are 4-byte aligned.)
-  auto xy = [&](int i) {
-    return _mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i_u*>(q[i]))));
-  };
-  auto zz = [&](int i) { return _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(q[i] + 2)); };
-  const __m128d e_xy = _mm_add_pd(xy(0), xy(1)), f_xy = _mm_add_pd(xy(2), xy(3));
-  const __m128d g_xy = _mm_add_pd(_mm_add_pd(_mm_add_pd(xy(4), xy(5)), xy(6)), xy(7));
-  const __m128d e_z = _mm_add_sd(zz(0), zz(1)), f_z = _mm_add_sd(zz(2), zz(3));
-  const __m128d g_z = _mm_add_sd(_mm_add_sd(_mm_add_sd(zz(4), zz(5)), zz(6)), zz(7));
-  const __m128d h = _mm_set1_pd(0.5), e = _mm_set1_pd(0.125), s = _mm_set1_pd(-1.0 / 16.0);
-  const __m128d p_xy = _mm_add_pd(_mm_add_pd(_mm_mul_pd(h, e_xy), _mm_mul_pd(e, f_xy)), _mm_mul_pd(s, g_xy));
-  const __m128d p_z = _mm_add_sd(_mm_add_sd(_mm_mul_sd(h, e_z), _mm_mul_sd(e, f_z)), _mm_mul_sd(s, g_z));
-  _mm_storel_epi64(reinterpret_cast<__m128i_u*>(out), _mm_castps_si128(_mm_cvtpd_ps(p_xy)));
-  _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), p_z));
-#else
   for (int k = 0; k < 3; ++k) {
     const double e = double(q[0][k]) + double(q[1][k]), f = double(q[2][k]) + double(q[3][k]);
     const double g = ((double(q[4][k]) + double(q[5][k])) + double(q[6][k])) + double(q[7][k]);
     out[k] = float((0.5 * e + 0.125 * f) + (-1.0 / 16.0) * g);
   }
-#endif
   return true;
 }
 
-template <typename Sink>
-void dispatch(const ButterflyContext& ctx, int32_t c, Sink& out) {
-  if (ctx.green && !ctx.green->empty()) rules(View<true>(ctx), c, out);
-  else rules(View<false>(ctx), c, out);
+// Calls f with the view that matches the level: with or without green pairs.
+template <typename F>
+void with_view(const ButterflyContext& ctx, F&& f) {
+  if (ctx.green && !ctx.green->empty()) f(View<true>(ctx));
+  else f(View<false>(ctx));
 }
 
 }  // namespace
@@ -350,7 +319,7 @@ void dispatch(const ButterflyContext& ctx, int32_t c, Sink& out) {
 void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out) {
   out.clear();
   TermList sink{out};
-  dispatch(ctx, c, sink);
+  with_view(ctx, [&](const auto& view) { rules(view, c, sink); });
 }
 
 void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positions, float out[3]) {
@@ -359,16 +328,14 @@ void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positi
 
 void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
                       float* out) {
-  auto run = [&](const auto& view) {
+  with_view(ctx, [&](const auto& view) {
     for (int64_t i = 0; i < count; ++i) {
       if (regular_point(view, corners[i], positions, out + 3 * i)) continue;
       PointSum sink{positions};
       rules(view, corners[i], sink);
       for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sink.p[k]);
     }
-  };
-  if (ctx.green && !ctx.green->empty()) run(View<true>(ctx));
-  else run(View<false>(ctx));
+  });
 }
 
 }  // namespace iteas

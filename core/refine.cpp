@@ -5,7 +5,6 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
-#include <memory>
 #include <numeric>
 #include <unordered_map>
 
@@ -196,7 +195,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
   // Data pass: stencils from the old level, a chunk of edges at a time; new
   // wedges blended per side.
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
-    std::unique_ptr<int32_t[]> list(new int32_t[kChunk]);
+    Array<int32_t> list(kChunk);
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
       int64_t n = 0;
@@ -204,7 +203,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
         if (canonical(c)) list[n++] = int32_t(c);
       const int32_t first = int32_t(nv + edges_in[k]);
       if (m.vertex_channels.empty()) {
-        butterfly_points(s.bctx, list.get(), n, m.positions.data(), &m.positions[3 * size_t(first)]);
+        butterfly_points(s.bctx, list.data(), n, m.positions.data(), &m.positions[3 * size_t(first)]);
       } else {
         for (int64_t i = 0; i < n; ++i) apply_stencil(m, s.bctx, list[i], first + int32_t(i), terms);
       }
@@ -345,31 +344,31 @@ struct Plan {
 };
 
 // Is the smallest angle of triangle (p, q, r) under the floor whose squared
-// sine is sin2? The smallest angle lies opposite the shortest edge and is at
-// most 60°, so sin² orders it: |cross|² e_min < sin2 e0 e1 e2, no trigonometry.
+// sine is sin2? (A triangle with coinciding points is.)
 bool below_floor(const double* p, const double* q, const double* r, double sin2) {
-  double u[3], w[3], z[3];
-  for (int i = 0; i < 3; ++i) { u[i] = q[i] - p[i]; w[i] = r[i] - p[i]; z[i] = r[i] - q[i]; }
-  const double cr[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
-  const double c2 = cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2];
-  const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
-  const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-  const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-  const double prod = e0 * e1 * e2;
-  return prod <= 0 || c2 * std::min(e0, std::min(e1, e2)) < sin2 * prod;
+  return smallest_angle_sin2(p, q, r) < sin2;
 }
-
-// Displacement steps of the sliver guard (1, 1/2, 1/4, 1/8, then 0).
-constexpr int kGuardSteps = 4;
 
 void load_point(const Mesh& m, int32_t v, double* out) {
   for (int i = 0; i < 3; ++i) out[i] = m.positions[3 * size_t(v) + i];
 }
 
+// Displacement steps of the sliver guard: after step k the new vertex on edge
+// (a, b) sits at the midpoint plus 2^-k of its Butterfly displacement, and at
+// the midpoint itself after the last step.
+constexpr int kGuardSteps = 4;
+void guard_point(const double* a, const double* b, const float* butterfly, int step, double* out) {
+  const double t = step >= kGuardSteps ? 0.0 : std::ldexp(1.0, -step);
+  for (int k = 0; k < 3; ++k) {
+    const double mid = 0.5 * (a[k] + b[k]);
+    out[k] = mid + t * (double(butterfly[k]) - mid);
+  }
+}
+
 // Would bisecting face f at its one split edge make a triangle whose smallest
-// angle is under the floor — at the Butterfly point that edge will get, or at
-// the edge's midpoint (where the sliver guard may move it)? Then the closure
-// splits f 1 -> 4 instead (its children keep its shape).
+// angle is under the floor, at any point the sliver guard may leave on that
+// edge — or would the later merge-and-split of the pair around that point?
+// Then the closure splits f 1 -> 4 instead (its children keep its shape).
 bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint8_t>& split) {
   if (s.floor_sin2 <= 0) return false;
   const int k = split[3 * f] ? 0 : (split[3 * f + 1] ? 1 : 2);
@@ -389,9 +388,8 @@ bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint
   // later merge and 1 -> 4 split around this (then fixed) point, (a, m, m_ca),
   // (m, b, m_bc), (m_bc, m_ca, m), with the other edges' points at their midpoints.
   for (int step = 0; step <= kGuardSteps; ++step) {
-    const double t = step == kGuardSteps ? 0.0 : std::ldexp(1.0, -step);
     double mid[3];
-    for (int i = 0; i < 3; ++i) mid[i] = 0.5 * (a[i] + b[i]) + t * (bf[i] - 0.5 * (a[i] + b[i]));
+    guard_point(a, b, bf, step, mid);
     if (below_floor(a, mid, apex, f2) || below_floor(mid, b, apex, f2) || below_floor(a, mid, ca, f2) ||
         below_floor(mid, b, bc, f2) || below_floor(bc, ca, mid, f2))
       return true;
@@ -411,12 +409,11 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
   // Butterfly points of the vertices moved so far (few): memory stays at two
   // bytes per new vertex however large the level.
   std::unordered_map<int64_t, std::array<float, 3>> butterfly;
-  constexpr int kSteps = kGuardSteps;
   std::vector<uint8_t> step(ne, 0), mark(ne);
   const int32_t nf = m.num_faces();
   // Each round moves every marked vertex one step; a vertex stops at the
   // midpoint, so rounds end when no poor face has a vertex left to move.
-  for (int round = 0; round < 8 * kSteps; ++round) {
+  for (int round = 0; round < 8 * kGuardSteps; ++round) {
     std::fill(mark.begin(), mark.end(), 0);
     bool any = false;
     for (int32_t f = 0; f < nf; ++f) {
@@ -426,22 +423,18 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
       for (int k = 0; k < 3; ++k) load_point(m, v[k], p[k]);
       if (!below_floor(p[0], p[1], p[2], s.floor_sin2)) continue;
       for (int k = 0; k < 3; ++k)
-        if (v[k] >= nv && step[v[k] - nv] < kSteps) { mark[v[k] - nv] = 1; any = true; }
+        if (v[k] >= nv && step[v[k] - nv] < kGuardSteps) { mark[v[k] - nv] = 1; any = true; }
     }
     if (!any) break;
     for (int64_t i = 0; i < ne; ++i) {
       if (!mark[i]) continue;
       float* p = &m.positions[3 * (size_t(nv) + i)];
       if (step[i] == 0) butterfly.emplace(i, std::array<float, 3>{p[0], p[1], p[2]});
-      const std::array<float, 3>& bf = butterfly.at(i);
-      const double t = ++step[i] >= kSteps ? 0.0 : std::ldexp(1.0, -step[i]);
-      double a[3], b[3];
+      double a[3], b[3], q[3];
       load_point(m, old_cv[next_corner(edges[i])], a);
       load_point(m, old_cv[prev_corner(edges[i])], b);
-      for (int k = 0; k < 3; ++k) {
-        const double lin = 0.5 * (a[k] + b[k]);
-        p[k] = float(lin + t * (double(bf[k]) - lin));
-      }
+      guard_point(a, b, butterfly.at(i).data(), ++step[i], q);
+      for (int k = 0; k < 3; ++k) p[k] = float(q[k]);
     }
   }
   return std::count_if(step.begin(), step.end(), [](uint8_t x) { return x > 0; });
@@ -802,7 +795,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.threshold = T_input;
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
   if (adaptive) {
-    // (0.1 % above half, so rounding of the output floats cannot dip under it.)
+    // (0.1 % above half: the reported minimum comes from a polynomial atan2
+    // accurate to 1e-5 rad, which must not read a guarded triangle as under.)
     const double floor_rad = 0.5005 * stats.quality_before.min_angle * (M_PI / 180.0);
     s.floor_sin2 = std::sin(floor_rad) * std::sin(floor_rad);
   }
