@@ -365,9 +365,29 @@ void guard_point(const double* a, const double* b, const float* butterfly, int s
   }
 }
 
+// Would the later merge of a green pair — parent (a, b, c), midpoint m on
+// (a, b) — make a triangle under the floor? When a neighbour asks for it, the
+// pair is merged and its parent split 1 -> 4 around m: (a, m, ca), (m, b, bc),
+// (ca, bc, c), (bc, ca, m), with ca and bc on the parent's other edges, and the
+// halves (a, m) and (m, b) may then be bisected (the greens born inside that
+// split). Checked with ca, bc and the halves' points at their midpoints, where
+// the sliver guard of that later level can always put them.
+bool poor_merge(const double* a, const double* m, const double* b, const double* c, double f2) {
+  double ca[3], bc[3], am[3], mb[3];
+  for (int i = 0; i < 3; ++i) {
+    ca[i] = 0.5 * (c[i] + a[i]);
+    bc[i] = 0.5 * (b[i] + c[i]);
+    am[i] = 0.5 * (a[i] + m[i]);
+    mb[i] = 0.5 * (m[i] + b[i]);
+  }
+  return below_floor(a, m, ca, f2) || below_floor(m, b, bc, f2) || below_floor(ca, bc, c, f2) ||
+         below_floor(bc, ca, m, f2) || below_floor(a, am, ca, f2) || below_floor(am, m, ca, f2) ||
+         below_floor(m, mb, bc, f2) || below_floor(mb, b, bc, f2);
+}
+
 // Would bisecting face f at its one split edge make a triangle whose smallest
 // angle is under the floor, at any point the sliver guard may leave on that
-// edge — or would the later merge-and-split of the pair around that point?
+// edge — or would the later merge of the pair around that point?
 // Then the closure splits f 1 -> 4 instead (its children keep its shape).
 bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint8_t>& split) {
   if (s.floor_sin2 <= 0) return false;
@@ -377,21 +397,17 @@ bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint
   if (o >= 0 && o < c) c = o;  // the stencil as the level will evaluate it
   float bf[3];
   butterfly_point(s.bctx, c, m.positions.data(), bf);
-  double apex[3], a[3], b[3], bc[3], ca[3];
+  double apex[3], a[3], b[3];
   load_point(m, m.corner_vertex[3 * f + k], apex);
   load_point(m, m.corner_vertex[3 * f + (k + 1) % 3], a);
   load_point(m, m.corner_vertex[3 * f + (k + 2) % 3], b);
-  for (int i = 0; i < 3; ++i) { bc[i] = 0.5 * (b[i] + apex[i]); ca[i] = 0.5 * (apex[i] + a[i]); }
   const double f2 = s.floor_sin2;
   // Every point the guard may leave on the edge (t = 1, 1/2, ..., 0 of the
-  // displacement). For each: the two green triangles, and the children of the
-  // later merge and 1 -> 4 split around this (then fixed) point, (a, m, m_ca),
-  // (m, b, m_bc), (m_bc, m_ca, m), with the other edges' points at their midpoints.
+  // displacement): the two green triangles and the pair's later merge.
   for (int step = 0; step <= kGuardSteps; ++step) {
     double mid[3];
     guard_point(a, b, bf, step, mid);
-    if (below_floor(a, mid, apex, f2) || below_floor(mid, b, apex, f2) || below_floor(a, mid, ca, f2) ||
-        below_floor(mid, b, bc, f2) || below_floor(bc, ca, mid, f2))
+    if (below_floor(a, mid, apex, f2) || below_floor(mid, b, apex, f2) || poor_merge(a, mid, b, apex, f2))
       return true;
   }
   return false;
@@ -417,13 +433,26 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
     std::fill(mark.begin(), mark.end(), 0);
     bool any = false;
     for (int32_t f = 0; f < nf; ++f) {
+      // A new triangle, or a green pair with a new vertex whose later merge
+      // would be poor (a pair born inside a merged pair's split was never
+      // checked by the closure: its parent is itself new).
       const int32_t* v = &m.corner_vertex[3 * size_t(f)];
-      if (v[0] < nv && v[1] < nv && v[2] < nv) continue;  // an old face
-      double p[3][3];
+      int32_t q[4] = {v[0], v[1], v[2], -1};
+      double p[4][3];
       for (int k = 0; k < 3; ++k) load_point(m, v[k], p[k]);
-      if (!below_floor(p[0], p[1], p[2], s.floor_sin2)) continue;
-      for (int k = 0; k < 3; ++k)
-        if (v[k] >= nv && step[v[k] - nv] < kGuardSteps) { mark[v[k] - nv] = 1; any = true; }
+      bool poor;
+      if (s.green[f] == 1) {  // (a, m, c) and (m, b, c)
+        q[3] = m.corner_vertex[3 * size_t(f) + 4];
+        load_point(m, q[3], p[3]);
+        if (q[0] < nv && q[1] < nv && q[2] < nv && q[3] < nv) continue;
+        poor = below_floor(p[0], p[1], p[2], s.floor_sin2) || poor_merge(p[0], p[1], p[3], p[2], s.floor_sin2);
+      } else {
+        if (q[0] < nv && q[1] < nv && q[2] < nv) continue;  // an old face
+        poor = below_floor(p[0], p[1], p[2], s.floor_sin2);
+      }
+      if (!poor) continue;
+      for (int k = 0; k < 4; ++k)
+        if (q[k] >= nv && step[q[k] - nv] < kGuardSteps) { mark[q[k] - nv] = 1; any = true; }
     }
     if (!any) break;
     for (int64_t i = 0; i < ne; ++i) {

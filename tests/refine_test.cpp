@@ -193,12 +193,8 @@ TEST(Refine, AffineInvariance) {
 // 0.2°-0.9° slivers), where greens born inside a merged pair's split are not
 // yet checked.
 TEST(Refine, FourIteasLevelsKeepHalfTheSmallestAngle) {
-  const char* known[] = {"fandisk", "screwdriver", "CesiumMilkTruck.glb#1", "2CylinderEngine"};
   int closed = 0;
   for (const Case& c : cases(30000)) {
-    if (std::any_of(std::begin(known), std::end(known),
-                    [&](const char* k) { return c.name.find(k) != std::string::npos; }))
-      continue;
     RefineStats st;
     refined(c.mesh, opts(Mode::kIteas, 4), &st);
     if (st.topology.boundary_edges != 0 || st.levels.empty()) continue;
