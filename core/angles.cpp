@@ -110,12 +110,16 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     std::vector<float> cache(theta ? 0 : 3 * kFaces);
     for (int64_t k = b; k < e; ++k) {
-      AngleSummary& s = part[k];
+      // Accumulated in locals (not through references the stores below might alias).
+      int64_t edges = 0, above = 0, hist[18] = {0};
+      double sum = 0;
+      float max = 0;
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
       if (!theta)
         for (int64_t f = f0; f < f1; ++f) face_normal_or_nan(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
+      const int32_t* opp = ct.opposites().data();
       for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-        const int32_t d = ct.opposite(c);
+        const int32_t d = opp[c];
         if (d < c) continue;  // boundary (-1) or counted at the smaller corner
         float t;
         if (theta) {
@@ -128,12 +132,18 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
           t = normal_angle_f(&cache[3 * size_t(c / 3 - f0)], ng);
         }
         if (std::isnan(t) || (exclude > 0 && t >= exclude)) continue;
-        ++s.edges;
-        sums[k] += t;
-        s.max = std::max(s.max, double(t));
-        s.above += t > threshold;
-        s.histogram[std::min(17, std::max(0, int(t / 10.0f)))]++;
+        ++edges;
+        sum += t;
+        max = std::max(max, t);
+        above += t > threshold;
+        hist[std::min(17, std::max(0, int(t / 10.0f)))]++;
       }
+      AngleSummary& s = part[k];
+      s.edges = edges;
+      s.above = above;
+      s.max = max;
+      sums[k] = sum;
+      std::copy(hist, hist + 18, s.histogram.begin());
     }
   });
   AngleSummary s;
@@ -195,29 +205,47 @@ double smallest_angle_sin2(const double* p, const double* q, const double* r) {
 }
 
 QualitySummary triangle_quality(const Mesh& mesh, int threads) {
-  // Smallest angle per face; the
-  // 1st percentile comes from a histogram of 0.01-degree bins over [0, 60].
+  // Smallest angle per face; the 1st percentile comes from a histogram of
+  // 0.01-degree bins over [0, 60]. The smallest angle lies opposite the
+  // shortest edge: with squared edge lengths e and twice the area |cr|,
+  // tan = |cr| / ((e_a + e_b - e_min) / 2) — one square root and the
+  // polynomial atan2, no inverse sine.
   constexpr int kBins = 6001;
   const int32_t nf = mesh.num_faces();
   constexpr int64_t kChunk = 1 << 15;
   const int64_t chunks = (nf + kChunk - 1) / kChunk;
-  std::vector<std::vector<int64_t>> hist(chunks);
+  std::vector<std::vector<int32_t>> hist(chunks);
   std::vector<float> mins(chunks, 180.0f);
   const float* p = mesh.positions.data();
+  const int32_t* cv = mesh.corner_vertex.data();
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
-      hist[k].assign(kBins, 0);
+      std::vector<int32_t>& h = hist[k];
+      h.assign(kBins, 0);
+      int32_t* bins = h.data();
+      float lo = 180.0f;
       for (int32_t f = int32_t(k * kChunk), end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk)); f < end; ++f) {
-        double v[3][3];
-        for (int i = 0; i < 3; ++i)
-          for (int k = 0; k < 3; ++k) v[i][k] = p[3 * size_t(mesh.corner_vertex[3 * size_t(f) + i]) + k];
-        const double s2 = smallest_angle_sin2(v[0], v[1], v[2]);
-        if (!(s2 >= 0)) continue;  // repeated position: no angles
-        const float sn = float(std::min(1.0, std::sqrt(s2)));
-        const float ang = fast_atan2_pos(sn, std::sqrt(std::max(0.0f, 1.0f - sn * sn))) * float(180.0 / M_PI);
-        mins[k] = std::min(mins[k], ang);
-        hist[k][std::min(kBins - 1, int(ang * 100.0f))]++;
+        const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
+        const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
+        const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
+        double u[3], w[3], z[3];
+        for (int i = 0; i < 3; ++i) {
+          u[i] = double(q[i]) - a[i];
+          w[i] = double(r[i]) - a[i];
+          z[i] = double(r[i]) - q[i];
+        }
+        const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
+        const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
+        const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+        const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+        if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
+        const double adj = 0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2)));
+        const float ang = fast_atan2_pos(float(std::sqrt(cx * cx + cy * cy + cz * cz)), float(adj)) *
+                          float(180.0 / M_PI);
+        lo = std::min(lo, ang);
+        ++bins[std::min(kBins - 1, int(ang * 100.0f))];
       }
+      mins[k] = lo;
     }
   });
   QualitySummary q;

@@ -2,8 +2,10 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <cmath>
 #include <stdexcept>
 
+#include "core/angles.h"
 #include "core/corner_table.h"
 #include "core/parallel.h"
 #include "tests/support.h"
@@ -67,6 +69,85 @@ TEST(CornerTable, CutsNonManifoldAndConflicts) {
   EXPECT_EQ(rep.orientation_conflicts, 2);  // (2,5) and (1,2)
   EXPECT_EQ(brute.conflicts, 2);
   EXPECT_EQ(rep.boundary_edges, brute.boundary_corners);
+}
+
+
+// The statistics' fast paths (single-precision normals, polynomial atan2, the
+// tangent form of the smallest angle) against exact angles.
+TEST(Angles, TriangleQualityMatchesExactSmallestAngles) {
+  // One triangle per row: apex angle alpha at the origin between two unit
+  // edges (isosceles, so alpha is the smallest for alpha < 60), and a
+  // 30-60-90 triangle.
+  const double alphas[] = {0.05, 1.0, 7.5, 33.0, 59.0};
+  Mesh m;
+  for (double alpha : alphas) {
+    const int32_t base = int32_t(m.positions.size() / 3);
+    const double r = alpha * M_PI / 180.0;
+    for (float x : {0.0f, 0.0f, 0.0f, 1.0f, 0.0f, 0.0f, float(std::cos(r)), float(std::sin(r)), 0.0f})
+      m.positions.push_back(x);
+    for (int k = 0; k < 3; ++k) m.corner_vertex.push_back(base + k);
+  }
+  const int32_t base = int32_t(m.positions.size() / 3);
+  for (float x : {0.0f, 0.0f, 5.0f, 1.0f, 0.0f, 5.0f, 0.0f, float(std::sqrt(3.0)), 5.0f}) m.positions.push_back(x);
+  for (int k = 0; k < 3; ++k) m.corner_vertex.push_back(base + k);
+  m.face_group.assign(m.corner_vertex.size() / 3, 0);
+  m.materialize();
+  const QualitySummary q = triangle_quality(m, 2);
+  // The exact smallest angle of each stored (float) triangle, by acos in double.
+  double exact_min = 180;
+  for (int32_t f = 0; f < m.num_faces(); ++f) {
+    double smallest = 180;
+    for (int k = 0; k < 3; ++k) {
+      const float* a = &m.positions[3 * size_t(m.corner_vertex[3 * f + k])];
+      const float* b = &m.positions[3 * size_t(m.corner_vertex[3 * f + (k + 1) % 3])];
+      const float* c = &m.positions[3 * size_t(m.corner_vertex[3 * f + (k + 2) % 3])];
+      double u[3], w[3];
+      for (int i = 0; i < 3; ++i) { u[i] = double(b[i]) - a[i]; w[i] = double(c[i]) - a[i]; }
+      const double d = u[0] * w[0] + u[1] * w[1] + u[2] * w[2];
+      const double nu = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+      const double nw = std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+      smallest = std::min(smallest, std::acos(std::max(-1.0, std::min(1.0, d / (nu * nw)))) * 180.0 / M_PI);
+    }
+    exact_min = std::min(exact_min, smallest);
+  }
+  EXPECT_NEAR(q.min_angle, exact_min, 1e-3 * exact_min + 1e-5);
+  EXPECT_NEAR(q.min_angle, 0.05, 1e-3);
+  // 1st percentile of six values (nearest rank 1): the smallest, to its bin.
+  EXPECT_GE(q.p1_angle, q.min_angle);
+  EXPECT_LE(q.p1_angle, q.min_angle + 0.01);
+}
+
+TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
+  int checked = 0;
+  for (const std::string& path : test::valid_mesh_files()) {
+    Document d;
+    if (!test::load(path, &d).ok()) continue;
+    for (MeshSlot& s : d.meshes) {
+      if (s.mesh.num_faces() > 60000) continue;
+      Mesh m = s.mesh;
+      CornerTable ct;
+      ct.build(m, true, 1);
+      std::vector<float> theta;
+      edge_angles(m, ct, theta, 2);  // double precision, atan2
+      const AngleSummary precise = summarize_angles(m, ct, &theta, 20.0, 0, 2);
+      const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 2);
+      // Zero-area tolerances differ slightly between the two paths: a few edges.
+      EXPECT_NEAR(double(fast.edges), double(precise.edges), 0.001 * double(precise.edges) + 2) << path;
+      EXPECT_NEAR(fast.mean, precise.mean, 1e-3 * precise.mean + 1e-3) << path;
+      EXPECT_NEAR(fast.max, precise.max, 1e-3 * precise.max + 1e-3) << path;
+      // Edges within 0.01 degree of the threshold may fall either side.
+      int64_t surely_above = 0, maybe_above = 0;
+      for (int32_t c = 0; c < ct.num_corners(); ++c) {
+        if (ct.opposite(c) < c || std::isnan(theta[c])) continue;
+        surely_above += theta[c] > 20.01f;
+        maybe_above += theta[c] > 19.99f;
+      }
+      EXPECT_GE(fast.above, surely_above) << path;
+      EXPECT_LE(fast.above, maybe_above) << path;
+      ++checked;
+    }
+  }
+  EXPECT_GE(checked, 10);
 }
 
 }  // namespace
