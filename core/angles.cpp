@@ -59,27 +59,34 @@ static inline bool face_normal_f(const Mesh& mesh, int32_t f, float n[3]) {
 }
 
 // atan2 for y >= 0 by a minimax polynomial on [0, 1] (max error ~1e-5 rad,
-// under 0.001 degree): statistics only, never selection.
-static inline float fast_atan2_pos(float y, float x) {
-  const float ax = std::fabs(x);
-  const float mx = std::max(y, ax), mn = std::min(y, ax);
-  if (mx == 0.0f) return 0.0f;
-  const float a = mn / mx, s = a * a;
+// under 0.001 degree): statistics only, never selection. Written without
+// branches (selects only) so that loops over arrays of it vectorise.
+__attribute__((always_inline)) static inline float fast_atan2_pos(float y, float x) {
+  const float ax = __builtin_fabsf(x);
+  const float mx = y > ax ? y : ax, mn = y > ax ? ax : y;
+  const float a = mn / (mx > 1e-30f ? mx : 1e-30f), s = a * a;  // 0 when both are 0
   float r = ((-0.0464964749f * s + 0.15931422f) * s - 0.327622764f) * s * a + a;
-  if (y > ax) r = 1.57079637f - r;
-  if (x < 0) r = 3.14159274f - r;
+  r = y > ax ? 1.57079637f - r : r;
+  r = x < 0 ? 3.14159274f - r : r;
   return r;
+}
+
+// out[i] = atan2(y[i], x[i]) in degrees for i < n, y >= 0 (NaN stays NaN).
+// GCC if-converts the selects above only without trapping-math semantics
+// (no trap can occur: the divisor is never zero). Clang vectorises it as is.
+#if defined(__GNUC__) && !defined(__clang__)
+#define ITEAS_SELECTS_VECTORISE __attribute__((optimize("no-trapping-math")))
+#else
+#define ITEAS_SELECTS_VECTORISE
+#endif
+ITEAS_SELECTS_VECTORISE static void atan2_degrees(const float* __restrict y, const float* __restrict x,
+                                                  float* __restrict out, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) out[i] = fast_atan2_pos(y[i], x[i]) * float(180.0 / M_PI);
 }
 
 // Normal of face f for the statistics pass, NaN for zero area.
 static inline void face_normal_or_nan(const Mesh& mesh, int32_t f, float* out) {
   if (!face_normal_f(mesh, f, out)) out[0] = out[1] = out[2] = std::numeric_limits<float>::quiet_NaN();
-}
-
-static inline float normal_angle_f(const float* n1, const float* n2) {
-  const float cx = n1[1] * n2[2] - n1[2] * n2[1], cy = n1[2] * n2[0] - n1[0] * n2[2], cz = n1[0] * n2[1] - n1[1] * n2[0];
-  const float dot = n1[0] * n2[0] + n1[1] * n2[1] + n1[2] * n2[2];
-  return fast_atan2_pos(std::sqrt(cx * cx + cy * cy + cz * cz), dot) * float(180.0 / M_PI);
 }
 
 void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads) {
@@ -108,35 +115,46 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
   std::vector<AngleSummary> part(chunks);
   std::vector<double> sums(chunks, 0.0);
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
-    std::vector<float> cache(theta ? 0 : 3 * kFaces);
+    // Per thread: the chunk's normals, then per edge the sine and cosine
+    // of the angle, then the angles (a vectorised loop).
+    std::vector<float> cache(theta ? 0 : 3 * kFaces), ys(theta ? 0 : 3 * kFaces), xs(ys.size()), ts(ys.size());
+    const int32_t* opp = ct.opposites().data();
     for (int64_t k = b; k < e; ++k) {
-      // Accumulated in locals (not through references the stores below might alias).
+      const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
+      // Accumulated in locals (not through references the stores might alias).
       int64_t edges = 0, above = 0, hist[18] = {0};
       double sum = 0;
       float max = 0;
-      const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
-      if (!theta)
-        for (int64_t f = f0; f < f1; ++f) face_normal_or_nan(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
-      const int32_t* opp = ct.opposites().data();
-      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-        const int32_t d = opp[c];
-        if (d < c) continue;  // boundary (-1) or counted at the smaller corner
-        float t;
-        if (theta) {
-          t = (*theta)[c];
-        } else {
-          const int64_t g = d / 3;
-          float far[3];
-          const float* ng = g < f1 ? &cache[3 * size_t(g - f0)] : far;
-          if (g >= f1) face_normal_or_nan(mesh, int32_t(g), far);
-          t = normal_angle_f(&cache[3 * size_t(c / 3 - f0)], ng);
-        }
-        if (std::isnan(t) || (exclude > 0 && t >= exclude)) continue;
+      auto add = [&](float t) {
+        if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
         ++edges;
         sum += t;
         max = std::max(max, t);
         above += t > threshold;
         hist[std::min(17, std::max(0, int(t / 10.0f)))]++;
+      };
+      if (theta) {
+        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c)
+          if (opp[c] > c) add((*theta)[c]);  // boundary (-1) or counted at the smaller corner
+      } else {
+        for (int64_t f = f0; f < f1; ++f) face_normal_or_nan(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
+        int64_t n = 0;
+        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+          const int32_t d = opp[c];
+          if (d < c) continue;
+          const int64_t g = d / 3;
+          float far[3];
+          const float* ng = g < f1 ? &cache[3 * size_t(g - f0)] : far;
+          if (g >= f1) face_normal_or_nan(mesh, int32_t(g), far);
+          const float* n1 = &cache[3 * size_t(c / 3 - f0)];
+          const float cx = n1[1] * ng[2] - n1[2] * ng[1], cy = n1[2] * ng[0] - n1[0] * ng[2],
+                      cz = n1[0] * ng[1] - n1[1] * ng[0];
+          ys[n] = std::sqrt(cx * cx + cy * cy + cz * cz);
+          xs[n] = n1[0] * ng[0] + n1[1] * ng[1] + n1[2] * ng[2];
+          ++n;
+        }
+        atan2_degrees(ys.data(), xs.data(), ts.data(), n);
+        for (int64_t i = 0; i < n; ++i) add(ts[i]);
       }
       AngleSummary& s = part[k];
       s.edges = edges;
@@ -219,31 +237,42 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   const float* p = mesh.positions.data();
   const int32_t* cv = mesh.corner_vertex.data();
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+    // Per block of faces: the atan2 arguments (double arithmetic), the angles
+    // (a vectorised loop), then the minimum and the histogram.
+    constexpr int kBlock = 2048;
+    float ys[kBlock], xs[kBlock], angles[kBlock];
     for (int64_t k = b; k < e; ++k) {
       std::vector<int32_t>& h = hist[k];
       h.assign(kBins, 0);
       int32_t* bins = h.data();
       float lo = 180.0f;
-      for (int32_t f = int32_t(k * kChunk), end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk)); f < end; ++f) {
-        const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
-        const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
-        const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
-        double u[3], w[3], z[3];
-        for (int i = 0; i < 3; ++i) {
-          u[i] = double(q[i]) - a[i];
-          w[i] = double(r[i]) - a[i];
-          z[i] = double(r[i]) - q[i];
+      const int32_t end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk));
+      for (int32_t f0 = int32_t(k * kChunk); f0 < end; f0 += kBlock) {
+        int n = 0;
+        for (int32_t f = f0, f1 = std::min(end, f0 + kBlock); f < f1; ++f) {
+          const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
+          const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
+          const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
+          double u[3], w[3], z[3];
+          for (int i = 0; i < 3; ++i) {
+            u[i] = double(q[i]) - a[i];
+            w[i] = double(r[i]) - a[i];
+            z[i] = double(r[i]) - q[i];
+          }
+          const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
+          const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
+          const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+          const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+          if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
+          ys[n] = float(std::sqrt(cx * cx + cy * cy + cz * cz));
+          xs[n] = float(0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2))));
+          ++n;
         }
-        const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
-        const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
-        const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-        const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-        if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
-        const double adj = 0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2)));
-        const float ang = fast_atan2_pos(float(std::sqrt(cx * cx + cy * cy + cz * cz)), float(adj)) *
-                          float(180.0 / M_PI);
-        lo = std::min(lo, ang);
-        ++bins[std::min(kBins - 1, int(ang * 100.0f))];
+        atan2_degrees(ys, xs, angles, n);
+        for (int i = 0; i < n; ++i) {
+          lo = std::min(lo, angles[i]);
+          ++bins[std::min(kBins - 1, int(angles[i] * 100.0f))];
+        }
       }
       mins[k] = lo;
     }
