@@ -116,8 +116,11 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
   std::vector<double> sums(chunks, 0.0);
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     // Per thread: the chunk's normals, then per edge the sine and cosine
-    // of the angle, then the angles (a vectorised loop).
-    std::vector<float> cache(theta ? 0 : 3 * kFaces), ys(theta ? 0 : 3 * kFaces), xs(ys.size()), ts(ys.size());
+    // of the angle, then the angles (a vectorised loop), in edge order.
+    // The sines and cosines go through small blocks on the stack.
+    constexpr int kBlock = 1024;
+    float ys[kBlock], xs[kBlock], ts[kBlock];
+    std::vector<float> cache(theta ? 0 : 3 * kFaces);
     const int32_t* opp = ct.opposites().data();
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
@@ -138,7 +141,12 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
           if (opp[c] > c) add((*theta)[c]);  // boundary (-1) or counted at the smaller corner
       } else {
         for (int64_t f = f0; f < f1; ++f) face_normal_or_nan(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
-        int64_t n = 0;
+        int n = 0;
+        auto flush = [&] {
+          atan2_degrees(ys, xs, ts, n);
+          for (int i = 0; i < n; ++i) add(ts[i]);
+          n = 0;
+        };
         for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
           const int32_t d = opp[c];
           if (d < c) continue;
@@ -151,10 +159,9 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
                       cz = n1[0] * ng[1] - n1[1] * ng[0];
           ys[n] = std::sqrt(cx * cx + cy * cy + cz * cz);
           xs[n] = n1[0] * ng[0] + n1[1] * ng[1] + n1[2] * ng[2];
-          ++n;
+          if (++n == kBlock) flush();
         }
-        atan2_degrees(ys.data(), xs.data(), ts.data(), n);
-        for (int64_t i = 0; i < n; ++i) add(ts[i]);
+        flush();
       }
       AngleSummary& s = part[k];
       s.edges = edges;
