@@ -28,14 +28,19 @@ bool face_normal(const Mesh& mesh, int32_t f, double n[3]) {
   return true;
 }
 
-float normal_angle(const Mesh& mesh, int32_t f, int32_t g) {
-  double n1[3], n2[3];
-  if (!face_normal(mesh, f, n1) || !face_normal(mesh, g, n2)) return std::numeric_limits<float>::quiet_NaN();
-  // atan2(|n1 x n2|, n1 . n2) is accurate for small and large angles alike.
+// Degrees between unit normals: atan2(|n1 x n2|, n1 . n2) is accurate for
+// small and large angles alike.
+static float angle_between(const double* n1, const double* n2) {
   const double cx = n1[1] * n2[2] - n1[2] * n2[1], cy = n1[2] * n2[0] - n1[0] * n2[2],
                cz = n1[0] * n2[1] - n1[1] * n2[0];
   const double dot = n1[0] * n2[0] + n1[1] * n2[1] + n1[2] * n2[2];
   return float(std::atan2(std::sqrt(cx * cx + cy * cy + cz * cz), dot) * (180.0 / M_PI));
+}
+
+float normal_angle(const Mesh& mesh, int32_t f, int32_t g) {
+  double n1[3], n2[3];
+  if (!face_normal(mesh, f, n1) || !face_normal(mesh, g, n2)) return std::numeric_limits<float>::quiet_NaN();
+  return angle_between(n1, n2);
 }
 
 // Single-precision variant for statistics.
@@ -90,14 +95,35 @@ static inline void face_normal_or_nan(const Mesh& mesh, int32_t f, float* out) {
 }
 
 void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads) {
+  // Fixed chunks of faces: each computes its faces' normals once (neighbours
+  // outside the chunk on the fly) and each edge's angle once, at its smaller
+  // corner, for both corners. Values equal normal_angle's bit for bit.
   const int32_t nc = ct.num_corners();
   theta.assign(nc, std::numeric_limits<float>::quiet_NaN());
-  parallel_for(nc, threads, [&](int64_t b, int64_t e) {
-    for (int64_t ci = b; ci < e; ++ci) {
-      const int32_t c = int32_t(ci), d = ct.opposite(c);
-      if (d < 0) continue;
-      // Same arguments in the same order on both corners: bit-identical values.
-      theta[c] = c < d ? normal_angle(mesh, c / 3, d / 3) : normal_angle(mesh, d / 3, c / 3);
+  constexpr int64_t kFaces = 4096;
+  const int64_t nf = nc / 3, chunks = (nf + kFaces - 1) / kFaces;
+  const int32_t* opp = ct.opposites().data();
+  parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+    std::vector<double> cache(3 * kFaces);
+    std::vector<uint8_t> valid(kFaces);
+    for (int64_t k = b; k < e; ++k) {
+      const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
+      for (int64_t f = f0; f < f1; ++f) valid[f - f0] = face_normal(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
+      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+        const int32_t d = opp[c];
+        if (d < c) continue;  // boundary (-1), or done at the smaller corner
+        if (!valid[c / 3 - f0]) continue;
+        const int64_t g = d / 3;
+        double far[3];
+        const double* ng = far;
+        if (g < f1) {
+          if (!valid[g - f0]) continue;
+          ng = &cache[3 * size_t(g - f0)];
+        } else if (!face_normal(mesh, int32_t(g), far)) {
+          continue;
+        }
+        theta[c] = theta[d] = angle_between(&cache[3 * size_t(c / 3 - f0)], ng);
+      }
     }
   });
 }

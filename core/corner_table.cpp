@@ -81,9 +81,33 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
     }
   }
 
-  // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   const int32_t nv = mesh.num_vertices();
   vertex_corner_.assign(nv, -1);
+  if (!split_vertices) {
+    // Without splitting, a vertex's corner is the start of the fan holding its
+    // first corner (what the walk below sets). A vertex none of whose corners
+    // has a left neighbour missing has only closed fans: the walk would end
+    // right of the first corner, so no pointer-chasing walk is needed for it
+    // (every interior vertex). Others walk left. In parallel.
+    parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
+      for (int64_t v = begin; v < end; ++v) {
+        const int32_t b = vc.offset[v], e = vc.offset[v + 1];
+        if (b == e) continue;
+        const int32_t start = vc.corners[b];
+        bool open = false;
+        for (int32_t i = b; i < e && !open; ++i) open = swing_left(vc.corners[i]) < 0;
+        if (!open) {
+          vertex_corner_[v] = swing_right(start);
+          continue;
+        }
+        int32_t first = start;
+        for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
+        vertex_corner_[v] = first;
+      }
+    });
+    return report;
+  }
+  // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   std::vector<uint8_t> visited(nc, 0);
   std::vector<int32_t> fan;
   std::vector<std::pair<int32_t, int32_t>> wedge_clone;  // (old wedge, new vertex) pairs

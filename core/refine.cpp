@@ -425,10 +425,12 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
   // Butterfly points of the vertices moved so far (few): memory stays at two
   // bytes per new vertex however large the level.
   std::unordered_map<int64_t, std::array<float, 3>> butterfly;
-  std::vector<uint8_t> step(ne, 0), mark(ne);
+  std::vector<uint8_t> step(ne, 0), mark(ne), moved(ne, 0);
   const int32_t nf = m.num_faces();
   // Each round moves every marked vertex one step; a vertex stops at the
   // midpoint, so rounds end when no poor face has a vertex left to move.
+  // After the first round only faces with a vertex the last round moved can
+  // change their verdict, so only those are looked at again.
   for (int round = 0; round < 8 * kGuardSteps; ++round) {
     std::fill(mark.begin(), mark.end(), 0);
     bool any = false;
@@ -437,26 +439,27 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
       // would be poor (a pair born inside a merged pair's split was never
       // checked by the closure: its parent is itself new).
       const int32_t* v = &m.corner_vertex[3 * size_t(f)];
-      int32_t q[4] = {v[0], v[1], v[2], -1};
+      const bool pair = s.green[f] == 1;  // (a, m, c) and (m, b, c)
+      const int32_t q[4] = {v[0], v[1], v[2], pair ? m.corner_vertex[3 * size_t(f) + 4] : -1};
+      bool fresh = false, touched = round == 0;
+      for (int k = 0; k < 4; ++k)
+        if (q[k] >= nv) {
+          fresh = true;
+          touched = touched || moved[q[k] - nv];
+        }
+      if (!fresh || !touched) continue;  // an old face, or as it was last round
       double p[4][3];
-      for (int k = 0; k < 3; ++k) load_point(m, v[k], p[k]);
-      bool poor;
-      if (s.green[f] == 1) {  // (a, m, c) and (m, b, c)
-        q[3] = m.corner_vertex[3 * size_t(f) + 4];
-        load_point(m, q[3], p[3]);
-        if (q[0] < nv && q[1] < nv && q[2] < nv && q[3] < nv) continue;
-        poor = below_floor(p[0], p[1], p[2], s.floor_sin2) || poor_merge(p[0], p[1], p[3], p[2], s.floor_sin2);
-      } else {
-        if (q[0] < nv && q[1] < nv && q[2] < nv) continue;  // an old face
-        poor = below_floor(p[0], p[1], p[2], s.floor_sin2);
-      }
+      for (int k = 0; k < (pair ? 4 : 3); ++k) load_point(m, q[k], p[k]);
+      const bool poor = below_floor(p[0], p[1], p[2], s.floor_sin2) ||
+                        (pair && poor_merge(p[0], p[1], p[3], p[2], s.floor_sin2));
       if (!poor) continue;
       for (int k = 0; k < 4; ++k)
         if (q[k] >= nv && step[q[k] - nv] < kGuardSteps) { mark[q[k] - nv] = 1; any = true; }
     }
     if (!any) break;
+    moved.swap(mark);  // every marked vertex moves now
     for (int64_t i = 0; i < ne; ++i) {
-      if (!mark[i]) continue;
+      if (!moved[i]) continue;
       float* p = &m.positions[3 * (size_t(nv) + i)];
       if (step[i] == 0) butterfly.emplace(i, std::array<float, 3>{p[0], p[1], p[2]});
       double a[3], b[3], q[3];

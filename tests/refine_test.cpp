@@ -205,6 +205,33 @@ TEST(Refine, FourIteasLevelsKeepHalfTheSmallestAngle) {
   EXPECT_GE(closed, 3);
 }
 
+// Refined levels rebuild their corner table without walking every fan: the
+// result must equal the walk's (which, without splitting, gives each vertex
+// the start of the fan holding its first corner), also on meshes whose cut
+// edges leave vertices with several fans.
+TEST(Refine, RefinedLevelsGetTheWalksVertexCorners) {
+  int n = 0, several = 0;
+  for (const Case& c : cases(8000)) {
+    for (Mode mode : {Mode::kIteas, Mode::kFixed}) {
+      const Mesh m = refined(prepared(c.mesh), opts(mode, 3));
+      Mesh a = m, b = m;
+      CornerTable fast, walked;
+      fast.build(a, false, 2);
+      walked.build(b, true, 2);  // splits: counts the vertices with several fans
+      several += b.num_vertices() - m.num_vertices();
+      bool same = fast.opposites() == walked.opposites();
+      for (int32_t v = 0; v < m.num_vertices() && same; ++v) {
+        // A split vertex keeps the fan of its first corner, as without splitting.
+        same = fast.vertex_corner(v) == walked.vertex_corner(v);
+      }
+      EXPECT_TRUE(same) << c.name;
+      ++n;
+    }
+  }
+  EXPECT_GE(n, 10);
+  EXPECT_GT(several, 0);  // suzanne's cut edges: the case the walk is kept for
+}
+
 TEST(Refine, BudgetIsNeverExceeded) {
   for (const Case& c : cases(10000)) {
     SCOPED_TRACE(c.name);
