@@ -41,27 +41,44 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   const int32_t nc = static_cast<int32_t>(cv.size());
   VertexCorners vc;
   vc.build(cv, mesh.num_vertices());
-  opposite_.assign(nc, -1);
+  opposite_.resize(nc);  // every entry is written below
 
   // Per corner c: its edge runs a = v(next c) -> b = v(prev c). The opposite
-  // face has the edge b -> a. Count both directions to detect cuts.
-  std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
+  // face has the edge b -> a. Count both directions to detect cuts. Pass 1
+  // counts b -> a edges (scanning b's outgoing run) and keeps the match; the
+  // count of a -> b edges is then the match's own count (its edge is b -> a),
+  // so pass 2 scans a's run only for corners without a match.
+  std::vector<uint8_t> reverse_count(nc, 0);
   parallel_for(nc, threads, [&](int64_t begin, int64_t end) {
     for (int64_t ci = begin; ci < end; ++ci) {
       const int32_t c = static_cast<int32_t>(ci);
       const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
-      int32_t reverse = 0, same = 0, match = -1;
+      int32_t reverse = 0, match = -1;
       for (int32_t i = vc.offset[b]; i < vc.offset[b + 1]; ++i)
         if (vc.nexts[i] == a) { ++reverse; match = prev_corner(vc.corners[i]); }
-      for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i)
-        same += vc.nexts[i] == b;  // includes c's own face
-      if (reverse == 1 && same == 1) {
-        opposite_[c] = match;
-      } else if (reverse + same >= 3) {
-        cut_kind[c] = 1;
-      } else if (same == 2) {
-        cut_kind[c] = 2;
+      reverse_count[c] = uint8_t(std::min(reverse, 3));
+      opposite_[c] = match;
+    }
+  });
+  std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
+  parallel_for(nc, threads, [&](int64_t begin, int64_t end) {
+    for (int64_t ci = begin; ci < end; ++ci) {
+      const int32_t c = static_cast<int32_t>(ci);
+      const int32_t reverse = reverse_count[c];
+      int32_t same;  // a -> b edges, c's own face included
+      if (reverse == 1) {
+        same = reverse_count[opposite_[c]];
+      } else if (reverse == 0) {
+        const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
+        same = 0;
+        for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i) same += vc.nexts[i] == b;
+      } else {
+        same = 1;  // already non-manifold
       }
+      if (reverse == 1 && same == 1) continue;  // the opposite stays
+      opposite_[c] = -1;
+      if (reverse + same >= 3) cut_kind[c] = 1;
+      else if (same == 2) cut_kind[c] = 2;
     }
   });
   // Each undirected edge counted once: by its smallest corner.
