@@ -39,6 +39,12 @@ const char* mode_name(Mode m) {
   return "iteas";
 }
 
+double effective_stall_ratio(const RefineOptions& o) {
+  if (o.mode == Mode::kUniform || o.select != Select::kAbove) return 0;
+  if (o.stall_ratio >= 0) return o.stall_ratio;
+  return o.mode == Mode::kIteas ? kStallRatioDefault : 0;
+}
+
 bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs, Options* o,
                    std::string* error, std::string* bad_option) {
   bool levels_set = false, threshold_set = false;
@@ -88,6 +94,10 @@ bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs
       if (value == "off") o->refine.crease_angle = 0;
       else if (parse_double(value, &d) && d > 0 && d <= 180) o->refine.crease_angle = d;
       else return fail(name, "expected degrees in (0, 180] or off");
+    } else if (name == "stall_ratio") {
+      if (value == "off") o->refine.stall_ratio = 0;
+      else if (parse_double(value, &d) && d > 0 && d <= 1) o->refine.stall_ratio = d;
+      else return fail(name, "expected a ratio in (0, 1] or off");
     } else if (name == "max_triangles") {
       if (!parse_int(value, &i) || i < 1) return fail(name, "expected a positive integer");
       o->refine.max_triangles = i;

@@ -22,10 +22,22 @@ struct RefineOptions {
   Scope threshold_scope = Scope::kInput;
   Select select = Select::kAbove;
   double crease_angle = 0;  // 0 = off
+  // A face is not selected again while its bend falls slower than this ratio
+  // per level (its largest θ is at least stall_ratio × its parent's when that
+  // was split). -1 = the mode's default (kStallRatioDefault for iteas, off for
+  // fixed); 0 = off.
+  double stall_ratio = -1;
   int64_t max_triangles = 5000000;
   double tension = 0;
   int threads = 0;  // 0 = all cores
 };
+
+// 2^-1/2: a bend falling at less than half the smooth-surface rate, in octaves
+// (the modified Butterfly halves θ per level on a smooth surface).
+inline constexpr double kStallRatioDefault = 0.70710678118654752;
+
+// The stall ratio in effect (0 = off).
+double effective_stall_ratio(const RefineOptions& o);
 
 struct OutputOptions {
   std::string output;  // glb, gltf, drc, obj, ply; empty = by context

@@ -84,6 +84,10 @@ struct State {
   std::vector<float> theta;    // per corner (adaptive levels and creases)
   std::vector<uint8_t> sharp;  // per corner
   std::vector<uint8_t> green;  // per face: 0, 1 (first child), 2 (second child)
+  // Stall detection (adaptive modes, stall > 0): per face, the largest θ its
+  // parent had when it was split 1 -> 4 (infinity for faces never born so).
+  double stall = 0;
+  std::vector<float> born;
   ButterflyContext bctx;
   int threads = 1;
   int64_t peak = 0;
@@ -97,7 +101,7 @@ struct State {
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) +
-                    vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.bctx.vclass.valence) +
+                    vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) + vbytes(s.bctx.vclass.valence) +
                     vbytes(s.bctx.vclass.complete) + extra;
   s.peak = std::max(s.peak, b);
 }
@@ -539,8 +543,15 @@ struct Emitter {
   std::vector<int32_t> fg;
   std::vector<uint8_t> green;
   LevelStats& ls;
+  // Stall detection: the born value of the faces emitted next — of red
+  // children (the parent's bend) and of kept faces and greens (inherited).
+  bool track_born = false;
+  std::vector<float> born;
+  float born_red = INFINITY, born_kept = INFINITY;
+  bool in_red = false;
 
   void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag) {
+    if (track_born) born.push_back(in_red ? born_red : born_kept);
     for (int k = 0; k < 3; ++k) {
       cv.push_back(v[k]);
       if (wedges) cw.push_back(w[k]);
@@ -566,6 +577,7 @@ struct Emitter {
       return;
     }
     ++ls.red_splits;
+    in_red = true;
     for (int j = 0; j < 3; ++j) {
       const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
       int32_t cvj[3], cwj[3];
@@ -575,10 +587,13 @@ struct Emitter {
       face(cvj, cwj, g, 0);
     }
     face(mid, mw, g, 0);
+    in_red = false;
   }
 };
 
-void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
+// fmax: the largest θ of each face of this level (for stall detection; may be
+// empty when it is off).
+void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float>& fmax, LevelStats& ls) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const bool wedges = m.has_wedges();
@@ -624,15 +639,24 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
   }
 
   // Topology: emit the new faces in parent order.
-  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls};
+  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, false, {}, INFINITY, INFINITY, false};
   em.cv.reserve(size_t(plan.triangles) * 3);
   if (wedges) em.cw.reserve(size_t(plan.triangles) * 3);
   em.green.reserve(plan.triangles);
+  em.track_born = s.stall > 0 && !fmax.empty();
+  if (em.track_born) em.born.reserve(plan.triangles);
+  auto bend = [&](int32_t f) { return std::isnan(fmax[f]) ? INFINITY : fmax[f]; };
   const int32_t none[3] = {-1, -1, -1};
   for (int32_t f = 0; f < nf; ++f) {
     const uint8_t gflag = s.green[f];
     if (gflag == 2) continue;
     const int32_t g = m.group_of(f);
+    if (em.track_born) {
+      em.born_kept = s.born.empty() ? INFINITY : s.born[f];
+      em.born_red = bend(f);
+      // A merged pair's parent is split: all its faces are its children.
+      if (gflag == 1 && plan.merged[f]) em.born_kept = em.born_red = std::max(bend(f), bend(f + 1));
+    }
     if (gflag == 1) {
       const int32_t f2 = f + 1;
       if (!plan.merged[f]) {
@@ -679,6 +703,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, LevelStats& ls) {
   if (wedges) m.corner_wedge.swap(em.cw);
   if (em.groups) m.face_group.swap(em.fg);
   s.green.swap(em.green);
+  s.born.swap(em.born);
   if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
   ls.vertices_added = next_v - nv;
   s.ct.build(m, false, s.threads);
@@ -826,6 +851,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   }
   stats.threshold = T_input;
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
+  if (adaptive) s.stall = effective_stall_ratio(o);
   if (adaptive) {
     // (0.1 % above half: the reported minimum comes from a polynomial atan2
     // accurate to 1e-5 rad, which must not read a guarded triangle as under.)
@@ -861,7 +887,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
         Plan plan;
         close_selection(s, m, selected, plan);
         ls.faces_selected = m.num_faces();
-        adaptive_level(s, m, plan, ls);
+        adaptive_level(s, m, plan, fmax, ls);
       }
     } else {
       const double T = o.threshold_scope == Scope::kLevel && o.mode == Mode::kIteas
@@ -871,12 +897,17 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (level == 1) stats.threshold = T;
       face_max_theta(s, m, fmax);
       selected.clear();
+      const bool stall = s.stall > 0 && !s.born.empty();
       for (int32_t f = 0; f < m.num_faces(); ++f) {
         const float t = fmax[f];
         if (std::isnan(t)) continue;
-        if (o.select == Select::kAbove ? t > T : t < T) selected.push_back(f);
+        if (!(o.select == Select::kAbove ? t > T : t < T)) continue;
+        // Still bending as much as when its parent was split: Butterfly is
+        // not smoothing it (a fold, a cusp or the ripples around one).
+        if (stall && double(t) >= s.stall * double(s.born[f])) { ++ls.faces_stalled; continue; }
+        selected.push_back(f);
       }
-      if (selected.empty()) { stats.stopped_by = "converged"; break; }
+      if (selected.empty()) { stats.stopped_by = ls.faces_stalled > 0 ? "stalled" : "converged"; break; }
       Plan plan;
       close_selection(s, m, selected, plan);
       bool clamped = false;
@@ -901,7 +932,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       ls.faces_selected = int64_t(selected.size());
-      adaptive_level(s, m, plan, ls);
+      adaptive_level(s, m, plan, fmax, ls);
       if (clamped) { stats.budget_clamped = true; stats.stopped_by = "budget"; }
     }
     ++levels_done;

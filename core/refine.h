@@ -25,6 +25,7 @@ struct LevelStats {
   int level = 0;
   double threshold = 0;
   int64_t faces_selected = 0;
+  int64_t faces_stalled = 0;  // above T but not selected: bending as much as their parent did
   int64_t red_splits = 0;     // faces split 1 -> 4
   int64_t green_splits = 0;   // faces bisected to close a crack
   int64_t greens_merged = 0;  // green pairs merged back into their parent
@@ -39,7 +40,7 @@ struct RefineStats {
   int64_t triangles_in = 0, vertices_in = 0, triangles_out = 0, vertices_out = 0;
   double threshold = 0;            // T of the first level
   std::vector<LevelStats> levels;  // one row per level performed
-  std::string stopped_by;          // converged | max_levels | budget | cancelled
+  std::string stopped_by;          // converged | stalled | max_levels | budget | cancelled
   AngleSummary before, after;      // "above" counts edges above T
   QualitySummary quality_before, quality_after;
   int64_t uniform_triangles = 0;   // uniform subdivision to the same level

@@ -30,6 +30,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   o.threshold.kind = mode == 2 ? iteas::ThresholdSpec::Kind::kDegrees : iteas::ThresholdSpec::Kind::kMean;
   o.threshold.value = 5;
   o.crease_angle = (data[2] & 4) ? 60 : 0;
+  o.stall_ratio = (data[2] & 8) ? 0.999 : -1;  // stall detection in fixed mode too
   o.max_triangles = 20000;
   iteas::RefineStats st;
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);

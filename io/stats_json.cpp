@@ -33,6 +33,8 @@ json options_json(const Options& o, const std::string& output_format) {
             {"draco_level", o.out.draco_level}};
   if (r.crease_angle > 0) j["crease_angle"] = r.crease_angle;
   else j["crease_angle"] = "off";
+  if (const double stall = effective_stall_ratio(r); stall > 0) j["stall_ratio"] = stall;
+  else j["stall_ratio"] = "off";
   return j;
 }
 
@@ -74,6 +76,7 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
       const LevelStats& ls = r.levels[l];
       if (mi == main_mesh) sum.threshold = ls.threshold;
       sum.faces_selected += ls.faces_selected;
+      sum.faces_stalled += ls.faces_stalled;
       sum.red_splits += ls.red_splits;
       sum.green_splits += ls.green_splits;
       sum.greens_merged += ls.greens_merged;
@@ -86,6 +89,7 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
       sum.ms += ls.ms;
     }
     levels.push_back({{"level", sum.level}, {"threshold", round3(sum.threshold)}, {"faces_selected", sum.faces_selected},
+                      {"faces_stalled", sum.faces_stalled},
                       {"red_splits", sum.red_splits}, {"green_splits", sum.green_splits},
                       {"greens_merged", sum.greens_merged}, {"vertices_added", sum.vertices_added},
                       {"vertices_guarded", sum.vertices_guarded}, {"triangles_after", sum.triangles_after},

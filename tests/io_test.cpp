@@ -226,7 +226,8 @@ TEST(Options, ParsesAndNamesBadOptions) {
   EXPECT_EQ(d.refine.levels, 2);
   for (const auto& [k, v] : std::vector<std::pair<std::string, std::string>>{
            {"levels", "9"}, {"levels", "x"}, {"mode", "loop"}, {"tension", "0.5"}, {"threshold", "p101"},
-           {"position_bits", "7"}, {"bogus", "1"}, {"max_triangles", "-3"}, {"crease_angle", "nan"}}) {
+           {"position_bits", "7"}, {"bogus", "1"}, {"max_triangles", "-3"}, {"crease_angle", "nan"},
+           {"stall_ratio", "0"}, {"stall_ratio", "1.5"}, {"stall_ratio", "half"}}) {
     Options x;
     EXPECT_FALSE(parse_options({{k, v}}, &x, &err, &bad)) << k << "=" << v;
     EXPECT_EQ(bad, k);
@@ -235,6 +236,25 @@ TEST(Options, ParsesAndNamesBadOptions) {
   Options f;
   EXPECT_FALSE(parse_options({{"mode", "fixed"}}, &f, &err, &bad));
   EXPECT_EQ(bad, "threshold");
+}
+
+// The stall ratio: on by default in iteas mode, off for the thesis's fixed
+// threshold unless asked for, never for uniform or select=below.
+TEST(Options, StallRatioDefaultsPerMode) {
+  std::string err;
+  Options it, fx, fx_on, un, below, off;
+  ASSERT_TRUE(parse_options({}, &it, &err));
+  EXPECT_DOUBLE_EQ(effective_stall_ratio(it.refine), kStallRatioDefault);
+  ASSERT_TRUE(parse_options({{"mode", "fixed"}, {"threshold", "10"}}, &fx, &err));
+  EXPECT_EQ(effective_stall_ratio(fx.refine), 0);
+  ASSERT_TRUE(parse_options({{"mode", "fixed"}, {"threshold", "10"}, {"stall-ratio", "0.6"}}, &fx_on, &err));
+  EXPECT_DOUBLE_EQ(effective_stall_ratio(fx_on.refine), 0.6);
+  ASSERT_TRUE(parse_options({{"mode", "uniform"}, {"stall_ratio", "0.6"}}, &un, &err));
+  EXPECT_EQ(effective_stall_ratio(un.refine), 0);
+  ASSERT_TRUE(parse_options({{"select", "below"}}, &below, &err));
+  EXPECT_EQ(effective_stall_ratio(below.refine), 0);
+  ASSERT_TRUE(parse_options({{"stall_ratio", "off"}}, &off, &err));
+  EXPECT_EQ(effective_stall_ratio(off.refine), 0);
 }
 
 }  // namespace

@@ -251,12 +251,76 @@ TEST(Refine, BudgetIsNeverExceeded) {
 }
 
 TEST(Refine, IteasConvergesOrStopsWithAReason) {
+  int stalled_meshes = 0;
   for (const Case& c : cases(6000)) {
-    RefineStats st;
-    refined(c.mesh, opts(Mode::kIteas, 6), &st);
-    EXPECT_TRUE(st.stopped_by == "converged" || st.stopped_by == "max_levels" || st.stopped_by == "budget") << c.name;
-    EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;  // smoother on average
+    for (const double stall : {-1.0, 0.0}) {  // default, off (the thesis's IteAS)
+      RefineOptions o = opts(Mode::kIteas, 6);
+      o.stall_ratio = stall;
+      RefineStats st;
+      refined(c.mesh, o, &st);
+      EXPECT_TRUE(st.stopped_by == "converged" || st.stopped_by == "stalled" || st.stopped_by == "max_levels" ||
+                  st.stopped_by == "budget") << c.name;
+      if (stall == 0) EXPECT_NE(st.stopped_by, "stalled") << c.name;
+      int64_t stalled = 0;
+      for (const LevelStats& ls : st.levels) stalled += ls.faces_stalled;
+      stalled_meshes += stalled > 0 || st.stopped_by == "stalled";
+      // Smoother on average — except where faces stalled: there the scheme
+      // cannot smooth and leaves them (e.g. 2CylinderEngine's sharp CAD edges,
+      // which need crease_angle).
+      if (stalled == 0 && st.stopped_by != "stalled") EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;
+    }
   }
+  EXPECT_GT(stalled_meshes, 0);
+}
+
+Mesh shipped(const std::string& name) {
+  Document d;
+  EXPECT_TRUE(test::load(std::string(ITEAS_SOURCE_DIR) + "/tests/data/" + name, &d).ok()) << name;
+  return d.meshes.empty() ? Mesh() : d.meshes[0].mesh;
+}
+
+// Stall detection (README, "Stalled faces"). On a smooth mesh, where the
+// Butterfly scheme halves the bend level after level, it never fires and the
+// output is the one without it.
+TEST(Refine, StallLeavesConvergingSurfacesAlone) {
+  const Mesh knot = shipped("knot.obj");
+  RefineOptions off = opts(Mode::kIteas, 6);
+  off.stall_ratio = 0;
+  RefineStats st, st_off;
+  const Mesh a = refined(knot, opts(Mode::kIteas, 6), &st), b = refined(knot, off, &st_off);
+  EXPECT_EQ(st.stopped_by, "converged");
+  for (const LevelStats& ls : st.levels) EXPECT_EQ(ls.faces_stalled, 0) << ls.level;
+  EXPECT_TRUE(same_mesh(a, b));
+}
+
+// The decimated knight's near-folds (largest θ 171°) stay as bent after every
+// split: without stall detection they keep six levels of refinement going.
+TEST(Refine, StalledFoldsStopDrivingRefinement) {
+  const Mesh knight = shipped("decimated-knight.off");
+  RefineOptions off = opts(Mode::kIteas, 6);
+  off.stall_ratio = 0;
+  RefineStats st, st_off;
+  const Mesh a = refined(knight, opts(Mode::kIteas, 6), &st), b = refined(knight, off, &st_off);
+  ASSERT_GE(st.levels.size(), 2u);
+  ASSERT_GE(st_off.levels.size(), 2u);
+  // Level 1 cannot stall (input faces have no parent); level 2 starts from
+  // the same mesh, so the faces above T are selected or stalled.
+  EXPECT_EQ(st.levels[0].faces_stalled, 0);
+  EXPECT_EQ(st.levels[0].triangles_after, st_off.levels[0].triangles_after);
+  EXPECT_GT(st.levels[1].faces_stalled, 0);
+  EXPECT_EQ(st.levels[1].faces_selected + st.levels[1].faces_stalled, st_off.levels[1].faces_selected);
+  for (const LevelStats& ls : st_off.levels) EXPECT_EQ(ls.faces_stalled, 0);
+  // Each level adds fewer triangles than without it, and far fewer in all.
+  for (size_t l = 1; l < std::min(st.levels.size(), st_off.levels.size()); ++l)
+    EXPECT_LT(st.levels[l].triangles_after - st.levels[l - 1].triangles_after,
+              st_off.levels[l].triangles_after - st_off.levels[l - 1].triangles_after) << l;
+  EXPECT_LT(3 * a.num_faces(), b.num_faces());
+  // A ratio above any bend ratio stalls every face born of a split.
+  RefineOptions all = opts(Mode::kIteas, 3);
+  all.stall_ratio = 1e-6;
+  RefineStats st_all;
+  refined(knight, all, &st_all);
+  for (size_t l = 1; l < st_all.levels.size(); ++l) EXPECT_GT(st_all.levels[l].faces_stalled, 0);
 }
 
 TEST(Refine, CancellationIsHonoured) {
