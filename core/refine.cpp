@@ -543,15 +543,17 @@ struct Emitter {
   std::vector<int32_t> fg;
   std::vector<uint8_t> green;
   LevelStats& ls;
-  // Stall detection: the born value of the faces emitted next — of red
-  // children (the parent's bend) and of kept faces and greens (inherited).
-  bool track_born = false;
-  std::vector<float> born;
-  float born_red = INFINITY, born_kept = INFINITY;
-  bool in_red = false;
+  // Stall detection (when on): the born value of every emitted face — the
+  // parent's bend for red children, inherited for kept faces and greens.
+  struct Born {
+    bool on = false;
+    std::vector<float> values;
+    float red = INFINITY, kept = INFINITY;  // for the parent being emitted
+    bool in_red = false;
+  } born;
 
   void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag) {
-    if (track_born) born.push_back(in_red ? born_red : born_kept);
+    if (born.on) born.values.push_back(born.in_red ? born.red : born.kept);
     for (int k = 0; k < 3; ++k) {
       cv.push_back(v[k]);
       if (wedges) cw.push_back(w[k]);
@@ -577,7 +579,7 @@ struct Emitter {
       return;
     }
     ++ls.red_splits;
-    in_red = true;
+    born.in_red = true;
     for (int j = 0; j < 3; ++j) {
       const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
       int32_t cvj[3], cwj[3];
@@ -587,7 +589,7 @@ struct Emitter {
       face(cvj, cwj, g, 0);
     }
     face(mid, mw, g, 0);
-    in_red = false;
+    born.in_red = false;
   }
 };
 
@@ -639,23 +641,23 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   }
 
   // Topology: emit the new faces in parent order.
-  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, false, {}, INFINITY, INFINITY, false};
+  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, {}};
   em.cv.reserve(size_t(plan.triangles) * 3);
   if (wedges) em.cw.reserve(size_t(plan.triangles) * 3);
   em.green.reserve(plan.triangles);
-  em.track_born = s.stall > 0 && !fmax.empty();
-  if (em.track_born) em.born.reserve(plan.triangles);
+  em.born.on = s.stall > 0 && !fmax.empty();
+  if (em.born.on) em.born.values.reserve(plan.triangles);
   auto bend = [&](int32_t f) { return std::isnan(fmax[f]) ? INFINITY : fmax[f]; };
   const int32_t none[3] = {-1, -1, -1};
   for (int32_t f = 0; f < nf; ++f) {
     const uint8_t gflag = s.green[f];
     if (gflag == 2) continue;
     const int32_t g = m.group_of(f);
-    if (em.track_born) {
-      em.born_kept = s.born.empty() ? INFINITY : s.born[f];
-      em.born_red = bend(f);
+    if (em.born.on) {
+      em.born.kept = s.born.empty() ? INFINITY : s.born[f];
+      em.born.red = bend(f);
       // A merged pair's parent is split: all its faces are its children.
-      if (gflag == 1 && plan.merged[f]) em.born_kept = em.born_red = std::max(bend(f), bend(f + 1));
+      if (gflag == 1 && plan.merged[f]) em.born.kept = em.born.red = std::max(bend(f), bend(f + 1));
     }
     if (gflag == 1) {
       const int32_t f2 = f + 1;
@@ -703,7 +705,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   if (wedges) m.corner_wedge.swap(em.cw);
   if (em.groups) m.face_group.swap(em.fg);
   s.green.swap(em.green);
-  s.born.swap(em.born);
+  s.born.swap(em.born.values);
   if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
   ls.vertices_added = next_v - nv;
   s.ct.build(m, false, s.threads);

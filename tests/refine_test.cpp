@@ -279,28 +279,36 @@ Mesh shipped(const std::string& name) {
   return d.meshes.empty() ? Mesh() : d.meshes[0].mesh;
 }
 
+// Six iteas levels with stall detection (the default) and without it.
+struct StallPair {
+  RefineStats st, st_off;
+  Mesh on, off;
+};
+StallPair with_and_without_stall(const Mesh& in) {
+  RefineOptions off = opts(Mode::kIteas, 6);
+  off.stall_ratio = 0;
+  StallPair p;
+  p.on = refined(in, opts(Mode::kIteas, 6), &p.st);
+  p.off = refined(in, off, &p.st_off);
+  return p;
+}
+
 // Stall detection (README, "Stalled faces"). On a smooth mesh, where the
 // Butterfly scheme halves the bend level after level, it never fires and the
 // output is the one without it.
 TEST(Refine, StallLeavesConvergingSurfacesAlone) {
-  const Mesh knot = shipped("knot.obj");
-  RefineOptions off = opts(Mode::kIteas, 6);
-  off.stall_ratio = 0;
-  RefineStats st, st_off;
-  const Mesh a = refined(knot, opts(Mode::kIteas, 6), &st), b = refined(knot, off, &st_off);
-  EXPECT_EQ(st.stopped_by, "converged");
-  for (const LevelStats& ls : st.levels) EXPECT_EQ(ls.faces_stalled, 0) << ls.level;
-  EXPECT_TRUE(same_mesh(a, b));
+  const StallPair p = with_and_without_stall(shipped("knot.obj"));
+  EXPECT_EQ(p.st.stopped_by, "converged");
+  for (const LevelStats& ls : p.st.levels) EXPECT_EQ(ls.faces_stalled, 0) << ls.level;
+  EXPECT_TRUE(same_mesh(p.on, p.off));
 }
 
 // The decimated knight's near-folds (largest θ 171°) stay as bent after every
 // split: without stall detection they keep six levels of refinement going.
 TEST(Refine, StalledFoldsStopDrivingRefinement) {
   const Mesh knight = shipped("decimated-knight.off");
-  RefineOptions off = opts(Mode::kIteas, 6);
-  off.stall_ratio = 0;
-  RefineStats st, st_off;
-  const Mesh a = refined(knight, opts(Mode::kIteas, 6), &st), b = refined(knight, off, &st_off);
+  const StallPair p = with_and_without_stall(knight);
+  const RefineStats &st = p.st, &st_off = p.st_off;
   ASSERT_GE(st.levels.size(), 2u);
   ASSERT_GE(st_off.levels.size(), 2u);
   // Level 1 cannot stall (input faces have no parent); level 2 starts from
@@ -314,7 +322,7 @@ TEST(Refine, StalledFoldsStopDrivingRefinement) {
   for (size_t l = 1; l < std::min(st.levels.size(), st_off.levels.size()); ++l)
     EXPECT_LT(st.levels[l].triangles_after - st.levels[l - 1].triangles_after,
               st_off.levels[l].triangles_after - st_off.levels[l - 1].triangles_after) << l;
-  EXPECT_LT(3 * a.num_faces(), b.num_faces());
+  EXPECT_LT(3 * p.on.num_faces(), p.off.num_faces());
   // A ratio above any bend ratio stalls every face born of a split.
   RefineOptions all = opts(Mode::kIteas, 3);
   all.stall_ratio = 1e-6;
