@@ -41,7 +41,7 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
       // faces, from a doubled triangle, would get weights that do not sum to 1).
       out.complete[v] = closed && !has_sharp && faces >= 3;
     }
-  });
+  }, 512);  // a fan walk per vertex: smaller pieces than per-corner loops
 }
 
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {

@@ -8,6 +8,10 @@
 namespace iteas {
 namespace {
 
+// Loops over vertices walk a fan each (several corners): smaller pieces than
+// the per-corner loops still pay for a thread.
+constexpr int64_t kVertexGrain = 512;
+
 // Corners grouped by vertex in two passes (count, prefix sum, fill), as
 // meshoptimizer builds adjacency.
 // Next to each corner, the vertex its outgoing edge leads to, so the edge
@@ -121,15 +125,35 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
         for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
         vertex_corner_[v] = first;
       }
-    });
+    }, kVertexGrain);
     return report;
   }
+  // Most vertices have one fan: found in parallel (the fan of the first
+  // corner covers all of the vertex's corners), set as the walk below would.
+  // The others (non-manifold vertices) are walked in order below.
+  std::vector<uint8_t> several(nv, 0);
+  parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
+    for (int64_t v = begin; v < end; ++v) {
+      const int32_t b = vc.offset[v], count = vc.offset[v + 1] - b;
+      if (count == 0) continue;
+      const int32_t start = vc.corners[b];
+      int32_t first = start, steps = 0;
+      for (int32_t c = swing_left(start); c >= 0 && c != start && steps <= count; c = swing_left(c), ++steps) first = c;
+      int32_t size = 0, c = first;
+      do {
+        ++size;
+        c = swing_right(c);
+      } while (c >= 0 && c != first && size <= count);
+      if (size == count && steps <= count) vertex_corner_[v] = first;
+      else several[v] = 1;
+    }
+  }, kVertexGrain);
   // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   std::vector<uint8_t> visited(nc, 0);
   std::vector<int32_t> fan;
-  std::vector<std::pair<int32_t, int32_t>> wedge_clone;  // (old wedge, new vertex) pairs
   std::unordered_map<uint64_t, int32_t> clone_of;
   for (int32_t v = 0; v < nv; ++v) {
+    if (!several[v]) continue;
     for (int32_t i = vc.offset[v]; i < vc.offset[v + 1]; ++i) {
       const int32_t start = vc.corners[i];
       if (visited[start]) continue;

@@ -1,6 +1,8 @@
-// A deterministic parallel-for: the range is cut into equal contiguous blocks,
-// one per thread, so results never depend on scheduling or on the thread count
-// as long as each index writes only its own outputs.
+// A deterministic parallel-for: the range is cut into contiguous pieces that
+// the calling thread and persistent workers claim as they go. Results never
+// depend on scheduling or on the thread count as long as each index writes
+// only its own outputs (loops that reduce do so per fixed-size chunk and
+// combine the chunks in order).
 #pragma once
 
 #include <cstdint>

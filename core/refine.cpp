@@ -19,7 +19,7 @@ int64_t vbytes(const std::vector<T, A>& v) { return int64_t(v.capacity() * sizeo
 
 // Fixed-size chunks make prefix sums (and so all numbering) independent of
 // the thread count.
-constexpr int64_t kChunk = 8192;
+constexpr int64_t kChunk = 2048;
 
 // ---------------------------------------------------------------------------
 // Wedge data: blended along an edge on one side (SPEC §2 "Attributes").

@@ -153,15 +153,49 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
 }  // namespace
 }  // namespace iteas
 
-// A block that throws (a memory budget, bad_alloc) must not terminate the
-// process: every thread is joined and the exception reaches the caller.
-TEST(Parallel, ExceptionsReachTheCallerAfterEveryThreadJoined) {
+// A piece that throws (a memory budget, bad_alloc) must not terminate the
+// process: the exception reaches the caller only after every piece that was
+// started has ended (no thread still uses the caller's frame), and no piece
+// is left half done. Pieces not yet claimed are skipped.
+TEST(Parallel, ExceptionsReachTheCallerAfterEveryPieceEnded) {
   for (int thrower = 0; thrower < 4; ++thrower) {
     std::atomic<int64_t> done{0};
+    std::atomic<int> active{0};
     EXPECT_THROW(iteas::parallel_for(4000, 4, [&](int64_t b, int64_t e) {
-      if (b / 1000 == thrower) throw std::runtime_error("block failed");
-      done += e - b;
+      ++active;
+      if (b / 1000 == thrower) { --active; throw std::runtime_error("piece failed"); }
+      for (int64_t i = b; i < e; ++i) done += 1;
+      --active;
     }, 1000), std::runtime_error);
-    EXPECT_EQ(done.load(), 3000) << "the other blocks ran to the end";
+    EXPECT_EQ(active.load(), 0) << "every started piece ended before the rethrow";
+    EXPECT_EQ(done.load() % 1000, 0) << "no piece half done";
+    EXPECT_LE(done.load(), 3000);
   }
+}
+
+// Every index is visited exactly once, whatever the thread count, grain and
+// size (pieces are claimed dynamically), including loops started from inside
+// a loop (the pool is busy: they fall back to threads of their own).
+TEST(Parallel, EveryIndexOnceWhateverThePartition) {
+  for (int threads : {1, 2, 3, 8})
+    for (int64_t n : {1, 7, 4096, 100001})
+      for (int64_t grain : {1, 64, 4096}) {
+        std::vector<std::atomic<int>> seen(n);
+        iteas::parallel_for(n, threads, [&](int64_t b, int64_t e) {
+          for (int64_t i = b; i < e; ++i) ++seen[i];
+        }, grain);
+        int64_t wrong = 0;
+        for (auto& x : seen) wrong += x.load() != 1;
+        EXPECT_EQ(wrong, 0) << threads << " threads, n " << n << ", grain " << grain;
+      }
+  std::vector<std::atomic<int>> seen(64 * 1000);
+  iteas::parallel_for(64, 2, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i)
+      iteas::parallel_for(1000, 2, [&](int64_t x, int64_t y) {
+        for (int64_t j = x; j < y; ++j) ++seen[i * 1000 + j];
+      }, 10);
+  }, 1);
+  int64_t wrong = 0;
+  for (auto& x : seen) wrong += x.load() != 1;
+  EXPECT_EQ(wrong, 0) << "nested loops";
 }
