@@ -1,5 +1,6 @@
 #include "core/butterfly.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/parallel.h"
@@ -44,6 +45,36 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
   }, 512);  // a fan walk per vertex: smaller pieces than per-corner loops
 }
 
+void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
+                 int threads) {
+  limit = std::min(limit, mesh.num_vertices());
+  out.offset.assign(size_t(std::max(limit, 0)), -1);
+  int64_t total = 0;
+  for (int32_t v = 0; v < limit; ++v) {
+    const int32_t k = vclass.valence[v];
+    if (!vclass.complete[v] || k == 6 || k < 3 || ct.vertex_corner(v) < 0) continue;
+    out.offset[v] = int32_t(total);
+    total += k;
+  }
+  out.corner.resize(size_t(total));
+  out.neighbour.resize(size_t(total));
+  const int32_t* cv = mesh.corner_vertex.data();
+  parallel_for(limit, threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t off = out.offset[v];
+      if (off < 0) continue;
+      const int32_t k = vclass.valence[v];
+      int32_t x = ct.vertex_corner(int32_t(v));
+      for (int32_t j = 0; j < k; ++j) {
+        if (x < 0) { out.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
+        out.corner[off + j] = x;
+        out.neighbour[off + j] = cv[next_corner(x)];
+        x = ct.swing_right(x);
+      }
+    }
+  }, 512);
+}
+
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {
   for (size_t f = 0; f < green.size(); ++f)
     if (green[f] == 2) --vclass.valence[mesh.corner_vertex[3 * f + 2]];
@@ -66,6 +97,10 @@ struct View {
   const int32_t* valence;
   const uint8_t* complete;
   double tension;
+  int32_t ring_limit;  // 0 without a ring table (and always with green pairs)
+  const int32_t* ring_offset;
+  const int32_t* ring_corner;
+  const int32_t* ring_neighbour;
   explicit View(const ButterflyContext& ctx)
       : ct(ctx.ct),
         cv(ctx.mesh->corner_vertex.data()),
@@ -74,7 +109,11 @@ struct View {
         green(ctx.green && !ctx.green->empty() ? ctx.green->data() : nullptr),
         valence(ctx.vclass.valence.data()),
         complete(ctx.vclass.complete.data()),
-        tension(ctx.tension) {}
+        tension(ctx.tension),
+        ring_limit(!kGreens && ctx.rings ? int32_t(ctx.rings->offset.size()) : 0),
+        ring_offset(ring_limit ? ctx.rings->offset.data() : nullptr),
+        ring_corner(ring_limit ? ctx.rings->corner.data() : nullptr),
+        ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr) {}
   uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
   // No sharp flags (an empty array) means: sharp = boundary.
   bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }
@@ -133,8 +172,23 @@ const WeightTable kWeights;  // immutable after static initialisation
 template <bool G, typename Sink>
 void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
   const int K = valence;
-  out(m.cv[x0], 0.75 * scale);
+  const int32_t v = m.cv[x0];
+  out(v, 0.75 * scale);
   const double* w = K >= 3 && K < kMaxTabulated ? kWeights.w[K] : nullptr;
+  if (!G && v < m.ring_limit && m.ring_offset[v] >= 0) {
+    // The ring from x0 on is the stored ring rotated to x0's place.
+    const int32_t* rc = m.ring_corner + m.ring_offset[v];
+    const int32_t* nb = m.ring_neighbour + m.ring_offset[v];
+    int i = 0;
+    while (i < K && rc[i] != x0) ++i;
+    if (i < K) {
+      for (int j = 0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
+        const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+        if (s != 0.0) out(nb[i], s * scale);
+      }
+      return;
+    }
+  }
   int32_t x = x0;
   for (int j = 0; j < K; ++j) {
     // The bisecting edge (c, m) of a green pair with this vertex as apex is

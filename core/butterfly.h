@@ -23,6 +23,17 @@ struct VertexClass {
   std::vector<uint8_t> complete;  // closed fan and no sharp (crease) edge
 };
 
+// The rings of extraordinary vertices (complete, valence other than 6) with an
+// index below a limit: per fan step from the vertex's corner, the corner and
+// the neighbour it leads to. Uniform levels make no new extraordinary
+// vertices, so with the input's vertex count as the limit this covers them
+// all; the extraordinary rule then reads its ring instead of walking the fan
+// once per edge (same terms in the same order).
+struct RingTable {
+  std::vector<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
+  std::vector<int32_t> corner, neighbour;
+};
+
 struct ButterflyContext {
   const Mesh* mesh = nullptr;
   const CornerTable* ct = nullptr;
@@ -35,6 +46,9 @@ struct ButterflyContext {
   // null or empty when there are none. Stencils see a green pair as its
   // parent (a, b, c): the bisecting edge (m, c) is not part of any ring.
   const std::vector<uint8_t>* green = nullptr;
+  // Optional (null: walk the fans); valid only for the level it was built on
+  // and never used with green pairs.
+  const RingTable* rings = nullptr;
 };
 
 // Removes the bisecting edges of green pairs from the apex valences.
@@ -46,6 +60,10 @@ void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, do
 
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
                        VertexClass& out, int threads = 1);
+
+// Rings of the extraordinary vertices below |limit| on the current level.
+void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
+                 int threads = 1);
 
 // The stencil of the new vertex on the edge opposite corner c. Rules:
 //  * sharp edge (boundary or crease): 4-point curve rule -1/16, 9/16, 9/16, -1/16

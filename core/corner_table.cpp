@@ -136,15 +136,18 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
     for (int64_t v = begin; v < end; ++v) {
       const int32_t b = vc.offset[v], count = vc.offset[v + 1] - b;
       if (count == 0) continue;
+      // Right from the first corner: round to it (a closed fan, which the
+      // walk below starts right of it) or to the fan's end, then left to its
+      // start. One fan when that covers every corner of the vertex.
       const int32_t start = vc.corners[b];
-      int32_t first = start, steps = 0;
-      for (int32_t c = swing_left(start); c >= 0 && c != start && steps <= count; c = swing_left(c), ++steps) first = c;
-      int32_t size = 0, c = first;
-      do {
-        ++size;
-        c = swing_right(c);
-      } while (c >= 0 && c != first && size <= count);
-      if (size == count && steps <= count) vertex_corner_[v] = first;
+      int32_t size = 1, c = swing_right(start);
+      for (; c >= 0 && c != start && size <= count; c = swing_right(c)) ++size;
+      int32_t first = swing_right(start);
+      if (c < 0) {
+        first = start;
+        for (c = swing_left(start); c >= 0 && size <= count; c = swing_left(c), ++size) first = c;
+      }
+      if (size == count) vertex_corner_[v] = first;
       else several[v] = 1;
     }
   }, kVertexGrain);

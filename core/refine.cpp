@@ -89,6 +89,10 @@ struct State {
   double stall = 0;
   std::vector<float> born;
   ButterflyContext bctx;
+  // Uniform levels: rings of the extraordinary vertices, all of which are
+  // input vertices (index below ring_limit).
+  RingTable rings;
+  int32_t ring_limit = 0;
   int threads = 1;
   int64_t peak = 0;
   // The uniform level derived sharp flags and vertex classes of the new level
@@ -102,7 +106,8 @@ struct State {
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) + vbytes(s.bctx.vclass.valence) +
-                    vbytes(s.bctx.vclass.complete) + extra;
+                    vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) + vbytes(s.rings.corner) +
+                    vbytes(s.rings.neighbour) + extra;
   s.peak = std::max(s.peak, b);
 }
 
@@ -191,6 +196,10 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
   grow_vertices(m, int64_t(nv) + ne);
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
   VertexClass& vclass = s.bctx.vclass;
+  if (s.green.empty()) {
+    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads);
+    s.bctx.rings = &s.rings;
+  }
   if (derive_classes) {
     vclass.valence.resize(size_t(nv) + ne);
     vclass.complete.resize(size_t(nv) + ne);
@@ -239,6 +248,12 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
       }
     }
   });
+
+  // The level's connectivity is about to change; the rings go before the
+  // children's arrays come (peak memory).
+  s.bctx.rings = nullptr;
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge));
+  s.rings = RingTable();
 
   // Topology pass 2: children. Then the new vertices' fan corners, while the
   // old opposites still tell canonical corners; then the old connectivity and
@@ -835,6 +850,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();
   stats.topology = s.ct.build(m, true, s.threads);
+  s.ring_limit = m.num_vertices();
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
   const bool adaptive = o.mode != Mode::kUniform;

@@ -6,6 +6,7 @@
 #include <iterator>
 #include <cstring>
 
+#include "core/butterfly.h"
 #include "core/corner_table.h"
 #include "core/refine.h"
 #include "tests/support.h"
@@ -232,6 +233,55 @@ TEST(Refine, RefinedLevelsGetTheWalksVertexCorners) {
   EXPECT_GT(several, 0);  // suzanne's cut edges: the case the walk is kept for
 }
 
+// Uniform levels read the rings of extraordinary vertices from a table
+// instead of walking each fan once per edge: every edge's point and stencil
+// must be the walk's, bit for bit, on every mesh (open, cut and irregular
+// ones included), on the input and on a refined level.
+TEST(Refine, RingTableGivesTheWalksPoints) {
+  int64_t edges = 0, ringed = 0;
+  for (const Case& c : cases(8000)) {
+    for (int levels : {0, 1}) {
+      Mesh m = prepared(c.mesh);
+      if (levels > 0) m = refined(m, opts(Mode::kUniform, levels));
+      CornerTable ct;
+      ct.build(m, false, 1);
+      std::vector<uint8_t> sharp;
+      ButterflyContext ctx;
+      ctx.mesh = &m;
+      ctx.ct = &ct;
+      ctx.sharp = &sharp;
+      mark_sharp_edges(ct, nullptr, 0, sharp, 1);
+      classify_vertices(m, ct, sharp, ctx.vclass, 2);
+      RingTable rings;
+      build_rings(m, ct, ctx.vclass, m.num_vertices(), rings, 2);
+      for (int32_t off : rings.offset) ringed += off >= 0;
+      std::vector<int32_t> corners;
+      for (int32_t x = 0; x < ct.num_corners(); ++x)
+        if (ct.opposite(x) < x) corners.push_back(x);
+      std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
+      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), walked.data());
+      std::vector<std::vector<StencilTerm>> walked_terms(corners.size());
+      for (size_t i = 0; i < corners.size(); ++i) butterfly_stencil(ctx, corners[i], walked_terms[i]);
+      ctx.rings = &rings;
+      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), read.data());
+      EXPECT_EQ(std::memcmp(walked.data(), read.data(), walked.size() * sizeof(float)), 0) << c.name;
+      std::vector<StencilTerm> terms;
+      int64_t differ = 0;
+      for (size_t i = 0; i < corners.size(); ++i) {
+        butterfly_stencil(ctx, corners[i], terms);
+        differ += terms.size() != walked_terms[i].size() ||
+                  !std::equal(terms.begin(), terms.end(), walked_terms[i].begin(), [](const StencilTerm& a, const StencilTerm& b) {
+                    return a.vertex == b.vertex && a.weight == b.weight;
+                  });
+      }
+      EXPECT_EQ(differ, 0) << c.name;
+      edges += int64_t(corners.size());
+    }
+  }
+  EXPECT_GT(edges, 10000);
+  EXPECT_GT(ringed, 1000);  // the tables were used, not just empty
+}
+
 TEST(Refine, BudgetIsNeverExceeded) {
   for (const Case& c : cases(10000)) {
     SCOPED_TRACE(c.name);
@@ -260,14 +310,18 @@ TEST(Refine, IteasConvergesOrStopsWithAReason) {
       refined(c.mesh, o, &st);
       EXPECT_TRUE(st.stopped_by == "converged" || st.stopped_by == "stalled" || st.stopped_by == "max_levels" ||
                   st.stopped_by == "budget") << c.name;
-      if (stall == 0) EXPECT_NE(st.stopped_by, "stalled") << c.name;
+      if (stall == 0) {
+        EXPECT_NE(st.stopped_by, "stalled") << c.name;
+      }
       int64_t stalled = 0;
       for (const LevelStats& ls : st.levels) stalled += ls.faces_stalled;
       stalled_meshes += stalled > 0 || st.stopped_by == "stalled";
       // Smoother on average — except where faces stalled: there the scheme
       // cannot smooth and leaves them (e.g. 2CylinderEngine's sharp CAD edges,
       // which need crease_angle).
-      if (stalled == 0 && st.stopped_by != "stalled") EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;
+      if (stalled == 0 && st.stopped_by != "stalled") {
+        EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;
+      }
     }
   }
   EXPECT_GT(stalled_meshes, 0);
