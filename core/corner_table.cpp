@@ -13,19 +13,22 @@ namespace {
 constexpr int64_t kVertexGrain = 512;
 
 // Corners grouped by vertex in two passes (count, prefix sum, fill), as
-// meshoptimizer builds adjacency.
-// Next to each corner, the vertex its outgoing edge leads to, so the edge
-// matching below reads one contiguous run per vertex.
+// meshoptimizer builds adjacency. Next to each corner, the vertices before
+// and after it in its face: a vertex's run then holds both its outgoing edges
+// (v -> next) and its incoming ones (prev -> v), so the edge matching below
+// reads one contiguous run per vertex and nothing else.
 struct VertexCorners {
   std::vector<int32_t> offset;  // nv + 1
   Array<int32_t> corners;
   Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
+  Array<int32_t> prevs;         // corner_vertex[prev_corner(corners[i])]
   void build(const Array<int32_t>& corner_vertex, int32_t nv) {
     offset.assign(size_t(nv) + 1, 0);
     for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
     for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
     corners.resize(corner_vertex.size());
     nexts.resize(corner_vertex.size());
+    prevs.resize(corner_vertex.size());
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
     const int32_t nc = static_cast<int32_t>(corner_vertex.size());
     for (int32_t f = 0; f < nc; f += 3)
@@ -33,6 +36,7 @@ struct VertexCorners {
         const int32_t i = fill[corner_vertex[f + k]]++;
         corners[i] = f + k;
         nexts[i] = corner_vertex[f + (k + 1) % 3];
+        prevs[i] = corner_vertex[f + (k + 2) % 3];
       }
   }
 };
@@ -47,44 +51,35 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   vc.build(cv, mesh.num_vertices());
   opposite_.resize(nc);  // every entry is written below
 
-  // Per corner c: its edge runs a = v(next c) -> b = v(prev c). The opposite
-  // face has the edge b -> a. Count both directions to detect cuts. Pass 1
-  // counts b -> a edges (scanning b's outgoing run) and keeps the match; the
-  // count of a -> b edges is then the match's own count (its edge is b -> a),
-  // so pass 2 scans a's run only for corners without a match.
-  std::vector<uint8_t> reverse_count(nc, 0);
-  parallel_for(nc, threads, [&](int64_t begin, int64_t end) {
-    for (int64_t ci = begin; ci < end; ++ci) {
-      const int32_t c = static_cast<int32_t>(ci);
-      const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
-      int32_t reverse = 0, match = -1;
-      for (int32_t i = vc.offset[b]; i < vc.offset[b + 1]; ++i)
-        if (vc.nexts[i] == a) { ++reverse; match = prev_corner(vc.corners[i]); }
-      reverse_count[c] = uint8_t(std::min(reverse, 3));
-      opposite_[c] = match;
-    }
-  });
+  // Per corner c: its edge runs a = v(next c) -> b = v(prev c); its corner at
+  // a is y = next(c), and the entry of y in a's run has next b. The opposite
+  // face has the edge b -> a: an entry of a's run whose prev is b (corner y'),
+  // and the opposite corner is next(y'). Both directions are counted to detect
+  // cuts: an edge stays only when each direction occurs once. Per vertex, so
+  // each corner is written by exactly one vertex (that of next(c)). With
+  // several matches the last in corner order is kept, as in the corner-order
+  // pass this replaced (the results are the same).
   std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
-  parallel_for(nc, threads, [&](int64_t begin, int64_t end) {
-    for (int64_t ci = begin; ci < end; ++ci) {
-      const int32_t c = static_cast<int32_t>(ci);
-      const int32_t reverse = reverse_count[c];
-      int32_t same;  // a -> b edges, c's own face included
-      if (reverse == 1) {
-        same = reverse_count[opposite_[c]];
-      } else if (reverse == 0) {
-        const int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
-        same = 0;
-        for (int32_t i = vc.offset[a]; i < vc.offset[a + 1]; ++i) same += vc.nexts[i] == b;
-      } else {
-        same = 1;  // already non-manifold
+  parallel_for(mesh.num_vertices(), threads, [&](int64_t begin, int64_t end) {
+    for (int64_t a = begin; a < end; ++a) {
+      const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
+      for (int32_t i = rb; i < re; ++i) {
+        const int32_t b = vc.nexts[i], c = prev_corner(vc.corners[i]);
+        int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
+        for (int32_t j = rb; j < re; ++j) {
+          if (vc.prevs[j] == b) { ++reverse; match = vc.corners[j]; }
+          same += vc.nexts[j] == b;
+        }
+        if (reverse == 1 && same == 1) {
+          opposite_[c] = next_corner(match);
+          continue;
+        }
+        opposite_[c] = -1;
+        if (reverse + same >= 3) cut_kind[c] = 1;
+        else if (same == 2) cut_kind[c] = 2;
       }
-      if (reverse == 1 && same == 1) continue;  // the opposite stays
-      opposite_[c] = -1;
-      if (reverse + same >= 3) cut_kind[c] = 1;
-      else if (same == 2) cut_kind[c] = 2;
     }
-  });
+  }, kVertexGrain);
   // Each undirected edge counted once: by its smallest corner.
   {
     std::unordered_map<uint64_t, uint8_t> seen;
