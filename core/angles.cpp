@@ -201,9 +201,11 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
     constexpr int kBlock = 1024;
     float ys[kBlock], xs[kBlock], ts[kBlock];
     std::vector<float> cache(theta ? 0 : 3 * kFaces), gathered(theta ? 0 : 6 * kBlock);
-    // Both normals of each edge of a block, one array per coordinate.
-    float* const soa[6] = {gathered.data(), gathered.data() + kBlock, gathered.data() + 2 * kBlock,
-                           gathered.data() + 3 * kBlock, gathered.data() + 4 * kBlock, gathered.data() + 5 * kBlock};
+    // Both normals of each edge of a block, one array per coordinate (none
+    // when theta is given).
+    float* soa[6] = {};
+    if (!theta)
+      for (int j = 0; j < 6; ++j) soa[j] = gathered.data() + j * kBlock;
     const int32_t* opp = ct.opposites().data();
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);

@@ -32,7 +32,18 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   o.crease_angle = (data[2] & 4) ? 60 : 0;
   o.stall_ratio = (data[2] & 8) ? 0.999 : -1;  // stall detection in fixed mode too
   o.max_triangles = 20000;
+  iteas::Mesh two = (data[2] & 16) ? m : iteas::Mesh();
   iteas::RefineStats st;
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
+  if (data[2] & 16) {
+    // Oracle: two threads (the worker pool, pieces claimed in any order)
+    // give the same mesh, bit for bit.
+    o.threads = 2;
+    iteas::RefineStats st2;
+    iteas::refine_mesh(two, o, iteas::RefineHooks(), &st2);
+    if (two.positions.size() != m.positions.size() || two.corner_vertex != m.corner_vertex ||
+        std::memcmp(two.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0)
+      __builtin_trap();
+  }
   return 0;
 }
