@@ -43,26 +43,6 @@ float normal_angle(const Mesh& mesh, int32_t f, int32_t g) {
   return angle_between(n1, n2);
 }
 
-// Single-precision variant for statistics.
-static inline bool face_normal_f(const Mesh& mesh, int32_t f, float n[3]) {
-  const float* p = mesh.positions.data();
-  const int32_t* cv = &mesh.corner_vertex[3 * size_t(f)];
-  const float* a = p + 3 * size_t(cv[0]);
-  const float* q = p + 3 * size_t(cv[1]);
-  const float* r = p + 3 * size_t(cv[2]);
-  const float u[3] = {q[0] - a[0], q[1] - a[1], q[2] - a[2]};
-  const float w[3] = {r[0] - a[0], r[1] - a[1], r[2] - a[2]};
-  n[0] = u[1] * w[2] - u[2] * w[1];
-  n[1] = u[2] * w[0] - u[0] * w[2];
-  n[2] = u[0] * w[1] - u[1] * w[0];
-  const float len2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
-  const float scale = u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-  if (!(len2 > 1e-20f * scale * scale) || !std::isfinite(len2)) return false;
-  const float inv = 1.0f / std::sqrt(len2);
-  for (int k = 0; k < 3; ++k) n[k] *= inv;
-  return true;
-}
-
 // atan2 for y >= 0 by a minimax polynomial on [0, 1] (max error ~1e-5 rad,
 // under 0.001 degree): statistics only, never selection. Written without
 // branches (selects only) so that loops over arrays of it vectorise.
@@ -89,14 +69,11 @@ ITEAS_SELECTS_VECTORISE static void atan2_degrees(const float* __restrict y, con
   for (int64_t i = 0; i < n; ++i) out[i] = fast_atan2_pos(y[i], x[i]) * float(180.0 / M_PI);
 }
 
-// Normal of face f for the statistics pass, NaN for zero area.
-static inline void face_normal_or_nan(const Mesh& mesh, int32_t f, float* out) {
-  if (!face_normal_f(mesh, f, out)) out[0] = out[1] = out[2] = std::numeric_limits<float>::quiet_NaN();
-}
-
-// face_normal_or_nan for faces [f0, f1) into out (3 per face), bit for bit:
-// the edge vectors are gathered per block, then the arithmetic runs as one
-// vectorised loop (square roots and divisions four at a time).
+// Unit normals in single precision for the statistics pass, faces [f0, f1)
+// into out (3 per face), NaN for a zero-area face (a cross product under
+// 1e-10 of the squared edge lengths) or a non-finite one. The edge vectors are
+// gathered per block, then the arithmetic runs as one vectorised loop (square
+// roots and divisions four at a time).
 ITEAS_SELECTS_VECTORISE static void face_normals_or_nan(const Mesh& mesh, int64_t f0, int64_t f1, float* out) {
   constexpr int kBlock = 512;
   float ux[kBlock], uy[kBlock], uz[kBlock], wx[kBlock], wy[kBlock], wz[kBlock];
@@ -120,7 +97,7 @@ ITEAS_SELECTS_VECTORISE static void face_normals_or_nan(const Mesh& mesh, int64_
       const float z = ux[i] * wy[i] - uy[i] * wx[i];
       const float len2 = x * x + y * y + z * z;
       const float scale = ux[i] * ux[i] + uy[i] * uy[i] + uz[i] * uz[i] + wx[i] * wx[i] + wy[i] * wy[i] + wz[i] * wz[i];
-      // As face_normal_f: zero area, or not finite (len2 >= 0 unless NaN/inf).
+      // Not finite: len2 >= 0 unless NaN or infinite.
       const bool ok = len2 > 1e-20f * scale * scale && len2 <= __FLT_MAX__;
       const float inv = 1.0f / __builtin_sqrtf(len2);
       const float nan = __builtin_nanf("");
@@ -241,7 +218,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
           float far[3];
           const float* ng = far;
           if (g < f1) ng = &cache[3 * size_t(g - f0)];
-          else face_normal_or_nan(mesh, int32_t(g), far);
+          else face_normals_or_nan(mesh, g, g + 1, far);  // a neighbour outside the chunk (few)
           for (int j = 0; j < 3; ++j) {
             soa[j][n] = n1[j];
             soa[3 + j][n] = ng[j];

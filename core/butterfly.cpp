@@ -154,6 +154,7 @@ struct PointSum {
 // s_j for valence K (Zorin et al. 1996): K = 3 and 4 special, K >= 5 by formula.
 // Tabulated once for K < 64; larger valences compute on the fly.
 constexpr int kMaxTabulated = 64;
+double formula_weight(int K, int j) { return (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K; }
 struct WeightTable {
   double w[kMaxTabulated][kMaxTabulated];
   WeightTable() {
@@ -161,7 +162,7 @@ struct WeightTable {
       for (int j = 0; j < K; ++j) {
         if (K == 3) w[K][j] = j == 0 ? 5.0 / 12.0 : -1.0 / 12.0;
         else if (K == 4) w[K][j] = j == 0 ? 3.0 / 8.0 : (j == 2 ? -1.0 / 8.0 : 0.0);
-        else w[K][j] = (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+        else w[K][j] = formula_weight(K, j);
       }
   }
 };
@@ -183,7 +184,7 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
     while (i < K && rc[i] != x0) ++i;
     if (i < K) {
       for (int j = 0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
-        const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+        const double s = w ? w[j] : formula_weight(K, j);
         if (s != 0.0) out(nb[i], s * scale);
       }
       return;
@@ -194,7 +195,7 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
     // The bisecting edge (c, m) of a green pair with this vertex as apex is
     // not in the parent's ring: skip it (classify discounted it from K).
     if (G) while (m.green_of(x) == 2 && x % 3 == 2) x = m.ct->swing_right(x);
-    const double s = w ? w[j] : (0.25 + std::cos(2.0 * M_PI * j / K) + 0.5 * std::cos(4.0 * M_PI * j / K)) / K;
+    const double s = w ? w[j] : formula_weight(K, j);
     if (s != 0.0) out(m.cv[next_corner(x)], s * scale);
     x = m.ct->swing_right(x);
   }

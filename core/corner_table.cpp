@@ -99,53 +99,34 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
 
   const int32_t nv = mesh.num_vertices();
   vertex_corner_.assign(nv, -1);
-  if (!split_vertices) {
-    // Without splitting, a vertex's corner is the start of the fan holding its
-    // first corner (what the walk below sets). A vertex none of whose corners
-    // has a left neighbour missing has only closed fans: the walk would end
-    // right of the first corner, so no pointer-chasing walk is needed for it
-    // (every interior vertex). Others walk left. In parallel.
-    parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
-      for (int64_t v = begin; v < end; ++v) {
-        const int32_t b = vc.offset[v], e = vc.offset[v + 1];
-        if (b == e) continue;
-        const int32_t start = vc.corners[b];
-        bool open = false;
-        for (int32_t i = b; i < e && !open; ++i) open = swing_left(vc.corners[i]) < 0;
-        if (!open) {
-          vertex_corner_[v] = swing_right(start);
-          continue;
-        }
-        int32_t first = start;
-        for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
-        vertex_corner_[v] = first;
-      }
-    }, kVertexGrain);
-    return report;
-  }
-  // Most vertices have one fan: found in parallel (the fan of the first
-  // corner covers all of the vertex's corners), set as the walk below would.
-  // The others (non-manifold vertices) are walked in order below.
-  std::vector<uint8_t> several(nv, 0);
+  // A vertex's corner is the start of the fan holding its first corner (what
+  // the walk below sets). A vertex none of whose corners has a left
+  // neighbour missing has only closed fans: the walk would end right of the
+  // first corner, so no pointer-chasing walk is needed for it (every interior
+  // vertex). Others walk left. In parallel. When splitting, a vertex whose
+  // first fan does not hold all its corners (a non-manifold vertex) is left to
+  // the walk below, in order.
+  std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     for (int64_t v = begin; v < end; ++v) {
-      const int32_t b = vc.offset[v], count = vc.offset[v + 1] - b;
-      if (count == 0) continue;
-      // Right from the first corner: round to it (a closed fan, which the
-      // walk below starts right of it) or to the fan's end, then left to its
-      // start. One fan when that covers every corner of the vertex.
+      const int32_t b = vc.offset[v], e = vc.offset[v + 1];
+      if (b == e) continue;
       const int32_t start = vc.corners[b];
-      int32_t size = 1, c = swing_right(start);
-      for (; c >= 0 && c != start && size <= count; c = swing_right(c)) ++size;
-      int32_t first = swing_right(start);
-      if (c < 0) {
-        first = start;
-        for (c = swing_left(start); c >= 0 && size <= count; c = swing_left(c), ++size) first = c;
+      bool open = false;
+      for (int32_t i = b; i < e && !open; ++i) open = swing_left(vc.corners[i]) < 0;
+      int32_t first = start;
+      if (!open) first = swing_right(start);
+      else
+        for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
+      if (split_vertices) {
+        int32_t size = 1;
+        for (int32_t c = swing_right(first); c >= 0 && c != first && size <= e - b; c = swing_right(c)) ++size;
+        if (size != e - b) { several[v] = 1; continue; }
       }
-      if (size == count) vertex_corner_[v] = first;
-      else several[v] = 1;
+      vertex_corner_[v] = first;
     }
   }, kVertexGrain);
+  if (!split_vertices) return report;
   // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   std::vector<uint8_t> visited(nc, 0);
   std::vector<int32_t> fan;
@@ -167,7 +148,6 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       } while (c >= 0 && c != first && !visited[c]);
       int32_t target = v;
       if (vertex_corner_[v] >= 0) {
-        if (!split_vertices) continue;
         target = mesh.num_vertices();
         for (int k = 0; k < 3; ++k) mesh.positions.push_back(mesh.positions[3 * size_t(v) + k]);
         for (VertexChannel& ch : mesh.vertex_channels)
