@@ -28,6 +28,7 @@ const char* kUsage =
     "              [--memory-limit B|nK|nM|nG] [--job-dir DIR] [--web-root DIR]  (or ITEAS_* env)\n"
     "options (SPEC §3): --mode iteas|uniform|fixed  --levels 1-8  --threshold mean|median|pNN|DEG\n"
     "  --threshold-scope input|level  --select above|below  --crease-angle DEG|off  --stall-ratio R|off\n"
+    "  --tolerance F|off  --flat-limit F|off  (fractions of the bounding-box diagonal)\n"
     "  --max-triangles N  --tension W  --output glb|gltf|drc|obj|ply  --compression draco|none\n"
     "  --position-bits N --normal-bits N --texcoord-bits N --color-bits N --generic-bits N --draco-level 0-10\n"
     "formats in: glb gltf (data: URIs only) drc obj ply off stl; out: glb gltf drc obj ply\n";

@@ -28,6 +28,14 @@ bool parse_int(const std::string& s, int64_t* out) {
   return true;
 }
 
+// The value of an adaptive-only option in effect: off in uniform mode, the
+// explicit value when given, else the iteas (select=above) default.
+double effective(const RefineOptions& o, double value, double iteas_default) {
+  if (o.mode == Mode::kUniform) return 0;
+  if (value >= 0) return value;
+  return o.mode == Mode::kIteas && o.select == Select::kAbove ? iteas_default : 0;
+}
+
 }  // namespace
 
 const char* mode_name(Mode m) {
@@ -40,10 +48,11 @@ const char* mode_name(Mode m) {
 }
 
 double effective_stall_ratio(const RefineOptions& o) {
-  if (o.mode == Mode::kUniform || o.select != Select::kAbove) return 0;
-  if (o.stall_ratio >= 0) return o.stall_ratio;
-  return o.mode == Mode::kIteas ? kStallRatioDefault : 0;
+  // A stall is a bend that does not fall: meaningless when selecting below T.
+  return o.select == Select::kAbove ? effective(o, o.stall_ratio, kStallRatioDefault) : 0;
 }
+double effective_tolerance(const RefineOptions& o) { return effective(o, o.tolerance, kToleranceDefault); }
+double effective_flat_limit(const RefineOptions& o) { return effective(o, o.flat_limit, kFlatLimitDefault); }
 
 bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs, Options* o,
                    std::string* error, std::string* bad_option) {
@@ -98,6 +107,11 @@ bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs
       if (value == "off") o->refine.stall_ratio = 0;
       else if (parse_double(value, &d) && d > 0 && d <= 1) o->refine.stall_ratio = d;
       else return fail(name, "expected a ratio in (0, 1] or off");
+    } else if (name == "tolerance" || name == "flat_limit") {
+      double* target = name == "tolerance" ? &o->refine.tolerance : &o->refine.flat_limit;
+      if (value == "off") *target = 0;
+      else if (parse_double(value, &d) && d > 0 && d <= 1) *target = d;
+      else return fail(name, "expected a fraction of the bounding-box diagonal in (0, 1] or off");
     } else if (name == "max_triangles") {
       if (!parse_int(value, &i) || i < 1) return fail(name, "expected a positive integer");
       o->refine.max_triangles = i;

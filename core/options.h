@@ -27,6 +27,15 @@ struct RefineOptions {
   // was split). -1 = the mode's default (kStallRatioDefault for iteas, off for
   // fixed); 0 = off.
   double stall_ratio = -1;
+  // Geometric tolerances (beyond the thesis), as fractions of the input's
+  // bounding-box diagonal; -1 = the mode's default, 0 = off. A face's
+  // deviation is how far splitting it would move the surface: the largest
+  // distance between the Butterfly vertex of one of its edges and that
+  // edge's midpoint. A face whose deviation is at most `tolerance` is not
+  // selected (the split would not show); a face that bends no more than T is
+  // selected when its deviation exceeds `flat_limit` (it is visibly faceted).
+  double tolerance = -1;
+  double flat_limit = -1;
   int64_t max_triangles = 5000000;
   double tension = 0;
   int threads = 0;  // 0 = all cores
@@ -36,8 +45,18 @@ struct RefineOptions {
 // (the modified Butterfly halves θ per level on a smooth surface).
 inline constexpr double kStallRatioDefault = 0.70710678118654752;
 
-// The stall ratio in effect (0 = off).
+// 1/4096 of the diagonal: less than a pixel with the whole model on a
+// 4096-pixel-wide screen.
+inline constexpr double kToleranceDefault = 1.0 / 4096.0;
+// 1/512 of the diagonal: a pixel or more even on a 512-pixel thumbnail.
+inline constexpr double kFlatLimitDefault = 1.0 / 512.0;
+
+// The values in effect (0 = off). The defaults apply to iteas with
+// select=above; fixed mode (the thesis's baseline) has them off unless asked,
+// uniform mode never.
 double effective_stall_ratio(const RefineOptions& o);
+double effective_tolerance(const RefineOptions& o);
+double effective_flat_limit(const RefineOptions& o);
 
 struct OutputOptions {
   std::string output;  // glb, gltf, drc, obj, ply; empty = by context

@@ -88,6 +88,8 @@ struct State {
   // parent had when it was split 1 -> 4 (infinity for faces never born so).
   double stall = 0;
   std::vector<float> born;
+  // Geometric tolerances in model units (0 = off): see RefineOptions.
+  double tolerance = 0, flat_limit = 0;
   ButterflyContext bctx;
   // Uniform levels: rings of the extraordinary vertices, all of which are
   // input vertices (index below ring_limit).
@@ -822,6 +824,102 @@ void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
   }
 }
 
+// How far splitting the edge at corner c would move the surface: the
+// distance from its Butterfly point to its midpoint along the edge's normal
+// (the sum of its faces' unit normals). A tangential shift, as beside a
+// boundary of a flat patch, leaves the surface where it is. Without a usable
+// normal (zero-area faces, a full fold) the whole distance counts.
+float edge_deviation(const State& s, const Mesh& m, int32_t c) {
+  float p[3];
+  butterfly_point(s.bctx, c, m.positions.data(), p);
+  auto at = [&](int32_t corner) { return &m.positions[3 * size_t(m.corner_vertex[corner])]; };
+  const float *a = at(next_corner(c)), *b = at(prev_corner(c));
+  double d[3], n[3] = {0, 0, 0};
+  for (int j = 0; j < 3; ++j) d[j] = double(p[j]) - 0.5 * (double(a[j]) + double(b[j]));
+  const int32_t o = s.ct.opposites()[c];
+  for (int32_t k : {c, o}) {
+    if (k < 0) continue;
+    const float *x = at(k), *y = at(next_corner(k)), *z = at(prev_corner(k));
+    const double u[3] = {double(y[0]) - x[0], double(y[1]) - x[1], double(y[2]) - x[2]};
+    const double w[3] = {double(z[0]) - x[0], double(z[1]) - x[1], double(z[2]) - x[2]};
+    const double f[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
+    const double len = std::sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]);
+    if (!(len > 0)) return float(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
+    for (int j = 0; j < 3; ++j) n[j] += f[j] / len;
+  }
+  const double nl = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  if (!(nl > 1e-6)) return float(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
+  return float(std::fabs(d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) / nl);
+}
+
+// The adaptive selection of a level (SPEC §2.3 and the extensions of
+// RefineOptions), in face order. A face's deviation is the largest of its
+// edges'. Every verdict depends on the face alone, so the selection is the
+// same for any thread count.
+void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, const std::vector<float>& fmax,
+                  std::vector<int32_t>& selected, LevelStats& ls) {
+  enum : uint8_t { kLeft, kSelected, kStalled, kWithinTolerance, kOverFlatLimit, kJudgeTolerance, kJudgeFlat };
+  const int32_t nf = m.num_faces();
+  const int64_t nc = 3 * int64_t(nf);
+  const bool stall = s.stall > 0 && !s.born.empty();
+  std::vector<uint8_t> verdict(nf);
+  std::atomic<bool> deviations{false};
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    bool any = false;
+    for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
+      const float t = fmax[f];
+      uint8_t v = kLeft;
+      if (std::isnan(t)) {
+        // no bend to judge (no interior edge with a normal on both sides)
+      } else if (!(o.select == Select::kAbove ? t > T : t < T)) {
+        if (s.flat_limit > 0) v = kJudgeFlat;
+      } else if (stall && double(t) >= s.stall * double(s.born[f])) {
+        // Still bending as much as when its parent was split: Butterfly is
+        // not smoothing it (a fold, a cusp or the ripples around one).
+        v = kStalled;
+      } else {
+        v = s.tolerance > 0 ? kJudgeTolerance : kSelected;
+      }
+      verdict[f] = v;
+      any |= v >= kJudgeTolerance;
+    }
+    if (any) deviations.store(true, std::memory_order_relaxed);
+  }, 512);
+  if (deviations.load()) {
+    // Each edge once (from its first corner), for the faces that need it.
+    const int32_t* opp = s.ct.opposites().data();
+    auto needs = [&](int32_t c) { return c >= 0 && verdict[c / 3] >= kJudgeTolerance; };
+    std::vector<float> dev(nc, 0.0f);
+    note_peak(s, m, vbytes(dev) + vbytes(verdict));
+    parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+      for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
+        const int32_t oc = opp[c];
+        if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
+        dev[c] = edge_deviation(s, m, c);
+        if (oc >= 0) dev[oc] = dev[c];
+      }
+    }, 1536);
+    parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+      for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
+        if (verdict[f] < kJudgeTolerance) continue;
+        const double d = std::max({dev[3 * f], dev[3 * f + 1], dev[3 * f + 2]});
+        if (verdict[f] == kJudgeTolerance) verdict[f] = d <= s.tolerance ? kWithinTolerance : kSelected;
+        else verdict[f] = d > s.flat_limit ? kOverFlatLimit : kLeft;
+      }
+    }, 512);
+  }
+  selected.clear();
+  for (int32_t f = 0; f < nf; ++f) {
+    switch (verdict[f]) {
+      case kStalled: ++ls.faces_stalled; break;
+      case kWithinTolerance: ++ls.faces_within_tolerance; break;
+      case kOverFlatLimit: ++ls.faces_over_flat_limit; selected.push_back(f); break;
+      case kSelected: selected.push_back(f); break;
+      default: break;
+    }
+  }
+}
+
 }  // namespace
 
 int64_t mesh_bytes(const Mesh& m) {
@@ -869,7 +967,12 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   }
   stats.threshold = T_input;
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
-  if (adaptive) s.stall = effective_stall_ratio(o);
+  if (adaptive) {
+    s.stall = effective_stall_ratio(o);
+    const double diagonal = bounding_box(m).diagonal();
+    s.tolerance = effective_tolerance(o) * diagonal;
+    s.flat_limit = effective_flat_limit(o) * diagonal;
+  }
   if (adaptive) {
     // (0.1 % above half: the reported minimum comes from a polynomial atan2
     // accurate to 1e-5 rad, which must not read a guarded triangle as under.)
@@ -914,17 +1017,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       ls.threshold = T;
       if (level == 1) stats.threshold = T;
       face_max_theta(s, m, fmax);
-      selected.clear();
-      const bool stall = s.stall > 0 && !s.born.empty();
-      for (int32_t f = 0; f < m.num_faces(); ++f) {
-        const float t = fmax[f];
-        if (std::isnan(t)) continue;
-        if (!(o.select == Select::kAbove ? t > T : t < T)) continue;
-        // Still bending as much as when its parent was split: Butterfly is
-        // not smoothing it (a fold, a cusp or the ripples around one).
-        if (stall && double(t) >= s.stall * double(s.born[f])) { ++ls.faces_stalled; continue; }
-        selected.push_back(f);
-      }
+      select_faces(s, m, o, T, fmax, selected, ls);
       if (selected.empty()) { stats.stopped_by = ls.faces_stalled > 0 ? "stalled" : "converged"; break; }
       Plan plan;
       close_selection(s, m, selected, plan);

@@ -26,6 +26,8 @@ struct LevelStats {
   double threshold = 0;
   int64_t faces_selected = 0;
   int64_t faces_stalled = 0;  // above T but not selected: bending as much as their parent did
+  int64_t faces_within_tolerance = 0;  // above T but not selected: the split would move the surface <= tolerance
+  int64_t faces_over_flat_limit = 0;   // selected although not above T: deviation > flat_limit (in faces_selected)
   int64_t red_splits = 0;     // faces split 1 -> 4
   int64_t green_splits = 0;   // faces bisected to close a crack
   int64_t greens_merged = 0;  // green pairs merged back into their parent
@@ -41,6 +43,7 @@ struct RefineStats {
   double threshold = 0;            // T of the first level
   std::vector<LevelStats> levels;  // one row per level performed
   std::string stopped_by;          // converged | stalled | max_levels | budget | cancelled
+                                   // (converged: nothing left to select, within tolerance included)
   AngleSummary before, after;      // "above" counts edges above T
   QualitySummary quality_before, quality_after;
   int64_t uniform_triangles = 0;   // uniform subdivision to the same level

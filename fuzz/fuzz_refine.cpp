@@ -31,6 +31,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   o.threshold.value = 5;
   o.crease_angle = (data[2] & 4) ? 60 : 0;
   o.stall_ratio = (data[2] & 8) ? 0.999 : -1;  // stall detection in fixed mode too
+  if (data[2] & 32) o.tolerance = o.flat_limit = 0.05;  // geometric tolerances in fixed mode too, coarse
   o.max_triangles = 20000;
   iteas::Mesh two = (data[2] & 16) ? m : iteas::Mesh();
   iteas::RefineStats st;

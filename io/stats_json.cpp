@@ -35,6 +35,11 @@ json options_json(const Options& o, const std::string& output_format) {
   else j["crease_angle"] = "off";
   if (const double stall = effective_stall_ratio(r); stall > 0) j["stall_ratio"] = stall;
   else j["stall_ratio"] = "off";
+  // Fractions of the bounding-box diagonal in effect.
+  if (const double t = effective_tolerance(r); t > 0) j["tolerance"] = t;
+  else j["tolerance"] = "off";
+  if (const double f = effective_flat_limit(r); f > 0) j["flat_limit"] = f;
+  else j["flat_limit"] = "off";
   return j;
 }
 
@@ -77,6 +82,8 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
       if (mi == main_mesh) sum.threshold = ls.threshold;
       sum.faces_selected += ls.faces_selected;
       sum.faces_stalled += ls.faces_stalled;
+      sum.faces_within_tolerance += ls.faces_within_tolerance;
+      sum.faces_over_flat_limit += ls.faces_over_flat_limit;
       sum.red_splits += ls.red_splits;
       sum.green_splits += ls.green_splits;
       sum.greens_merged += ls.greens_merged;
@@ -89,7 +96,8 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
       sum.ms += ls.ms;
     }
     levels.push_back({{"level", sum.level}, {"threshold", round3(sum.threshold)}, {"faces_selected", sum.faces_selected},
-                      {"faces_stalled", sum.faces_stalled},
+                      {"faces_stalled", sum.faces_stalled}, {"faces_within_tolerance", sum.faces_within_tolerance},
+                      {"faces_over_flat_limit", sum.faces_over_flat_limit},
                       {"red_splits", sum.red_splits}, {"green_splits", sum.green_splits},
                       {"greens_merged", sum.greens_merged}, {"vertices_added", sum.vertices_added},
                       {"vertices_guarded", sum.vertices_guarded}, {"triangles_after", sum.triangles_after},

@@ -227,7 +227,8 @@ TEST(Options, ParsesAndNamesBadOptions) {
   for (const auto& [k, v] : std::vector<std::pair<std::string, std::string>>{
            {"levels", "9"}, {"levels", "x"}, {"mode", "loop"}, {"tension", "0.5"}, {"threshold", "p101"},
            {"position_bits", "7"}, {"bogus", "1"}, {"max_triangles", "-3"}, {"crease_angle", "nan"},
-           {"stall_ratio", "0"}, {"stall_ratio", "1.5"}, {"stall_ratio", "half"}}) {
+           {"stall_ratio", "0"}, {"stall_ratio", "1.5"}, {"stall_ratio", "half"}, {"tolerance", "0"},
+           {"tolerance", "-0.001"}, {"tolerance", "2"}, {"flat_limit", "1e400"}, {"flat_limit", "on"}}) {
     Options x;
     EXPECT_FALSE(parse_options({{k, v}}, &x, &err, &bad)) << k << "=" << v;
     EXPECT_EQ(bad, k);
@@ -255,6 +256,33 @@ TEST(Options, StallRatioDefaultsPerMode) {
   EXPECT_EQ(effective_stall_ratio(below.refine), 0);
   ASSERT_TRUE(parse_options({{"stall_ratio", "off"}}, &off, &err));
   EXPECT_EQ(effective_stall_ratio(off.refine), 0);
+}
+
+// The geometric tolerances: on by default in iteas mode (select=above), off
+// for the thesis's fixed threshold unless asked for, never for uniform.
+TEST(Options, TolerancesDefaultPerMode) {
+  std::string err;
+  Options it, fx, fx_on, un, below, below_on, off;
+  ASSERT_TRUE(parse_options({}, &it, &err));
+  EXPECT_DOUBLE_EQ(effective_tolerance(it.refine), kToleranceDefault);
+  EXPECT_DOUBLE_EQ(effective_flat_limit(it.refine), kFlatLimitDefault);
+  ASSERT_TRUE(parse_options({{"mode", "fixed"}, {"threshold", "10"}}, &fx, &err));
+  EXPECT_EQ(effective_tolerance(fx.refine), 0);
+  EXPECT_EQ(effective_flat_limit(fx.refine), 0);
+  ASSERT_TRUE(parse_options({{"mode", "fixed"}, {"threshold", "10"}, {"tolerance", "0.001"}, {"flat-limit", "0.01"}},
+                            &fx_on, &err));
+  EXPECT_DOUBLE_EQ(effective_tolerance(fx_on.refine), 0.001);
+  EXPECT_DOUBLE_EQ(effective_flat_limit(fx_on.refine), 0.01);
+  ASSERT_TRUE(parse_options({{"mode", "uniform"}, {"tolerance", "0.001"}}, &un, &err));
+  EXPECT_EQ(effective_tolerance(un.refine), 0);
+  ASSERT_TRUE(parse_options({{"select", "below"}}, &below, &err));
+  EXPECT_EQ(effective_tolerance(below.refine), 0);
+  EXPECT_EQ(effective_flat_limit(below.refine), 0);
+  ASSERT_TRUE(parse_options({{"select", "below"}, {"tolerance", "0.001"}}, &below_on, &err));
+  EXPECT_DOUBLE_EQ(effective_tolerance(below_on.refine), 0.001);
+  ASSERT_TRUE(parse_options({{"tolerance", "off"}, {"flat_limit", "off"}}, &off, &err));
+  EXPECT_EQ(effective_tolerance(off.refine), 0);
+  EXPECT_EQ(effective_flat_limit(off.refine), 0);
 }
 
 }  // namespace

@@ -137,6 +137,7 @@ TEST(Refine, PlanarMeshStaysPlanar) {
     RefineOptions ro = opts(mode, 3);
     ro.threshold.kind = ThresholdSpec::Kind::kDegrees;  // a flat mesh has no bend: select everything
     ro.threshold.value = -1;
+    ro.tolerance = 0;  // which the tolerance would not (see TolerancesAreGeometric)
     const Mesh out = refined(grid, ro);
     EXPECT_GT(out.num_faces(), grid.num_faces());
     for (int32_t i = 0; i < out.num_vertices(); ++i) {
@@ -301,30 +302,39 @@ TEST(Refine, BudgetIsNeverExceeded) {
 }
 
 TEST(Refine, IteasConvergesOrStopsWithAReason) {
-  int stalled_meshes = 0;
+  int stalled_meshes = 0, tolerant_meshes = 0;
   for (const Case& c : cases(6000)) {
-    for (const double stall : {-1.0, 0.0}) {  // default, off (the thesis's IteAS)
+    // The defaults; the thesis's IteAS (stall detection and tolerances off).
+    for (const int variant : {0, 2}) {
       RefineOptions o = opts(Mode::kIteas, 6);
-      o.stall_ratio = stall;
+      if (variant >= 1) o.tolerance = o.flat_limit = 0;
+      if (variant == 2) o.stall_ratio = 0;
       RefineStats st;
       refined(c.mesh, o, &st);
       EXPECT_TRUE(st.stopped_by == "converged" || st.stopped_by == "stalled" || st.stopped_by == "max_levels" ||
                   st.stopped_by == "budget") << c.name;
-      if (stall == 0) {
+      if (variant == 2) {
         EXPECT_NE(st.stopped_by, "stalled") << c.name;
       }
-      int64_t stalled = 0;
-      for (const LevelStats& ls : st.levels) stalled += ls.faces_stalled;
+      int64_t stalled = 0, tolerant = 0;
+      for (const LevelStats& ls : st.levels) {
+        stalled += ls.faces_stalled;
+        tolerant += ls.faces_within_tolerance + ls.faces_over_flat_limit;
+        if (variant >= 1) EXPECT_EQ(ls.faces_within_tolerance + ls.faces_over_flat_limit, 0) << c.name;
+      }
       stalled_meshes += stalled > 0 || st.stopped_by == "stalled";
+      tolerant_meshes += tolerant > 0;
       // Smoother on average — except where faces stalled: there the scheme
       // cannot smooth and leaves them (e.g. 2CylinderEngine's sharp CAD edges,
-      // which need crease_angle).
-      if (stalled == 0 && st.stopped_by != "stalled") {
+      // which need crease_angle). The tolerances leave faces flat by design,
+      // so the mean θ is no measure of the defaults.
+      if (variant == 2 && stalled == 0 && st.stopped_by != "stalled") {
         EXPECT_LE(st.after.mean, st.before.mean + 1e-9) << c.name;
       }
     }
   }
   EXPECT_GT(stalled_meshes, 0);
+  EXPECT_GT(tolerant_meshes, 0);
 }
 
 Mesh shipped(const std::string& name) {
@@ -333,16 +343,19 @@ Mesh shipped(const std::string& name) {
   return d.meshes.empty() ? Mesh() : d.meshes[0].mesh;
 }
 
-// Six iteas levels with stall detection (the default) and without it.
+// Six iteas levels with stall detection (the default) and without it, both
+// without the geometric tolerances, to see the stall alone.
 struct StallPair {
   RefineStats st, st_off;
   Mesh on, off;
 };
 StallPair with_and_without_stall(const Mesh& in) {
-  RefineOptions off = opts(Mode::kIteas, 6);
+  RefineOptions on = opts(Mode::kIteas, 6);
+  on.tolerance = on.flat_limit = 0;
+  RefineOptions off = on;
   off.stall_ratio = 0;
   StallPair p;
-  p.on = refined(in, opts(Mode::kIteas, 6), &p.st);
+  p.on = refined(in, on, &p.st);
   p.off = refined(in, off, &p.st_off);
   return p;
 }
@@ -379,10 +392,64 @@ TEST(Refine, StalledFoldsStopDrivingRefinement) {
   EXPECT_LT(3 * p.on.num_faces(), p.off.num_faces());
   // A ratio above any bend ratio stalls every face born of a split.
   RefineOptions all = opts(Mode::kIteas, 3);
+  all.tolerance = all.flat_limit = 0;
   all.stall_ratio = 1e-6;
   RefineStats st_all;
   refined(knight, all, &st_all);
   for (size_t l = 1; l < st_all.levels.size(); ++l) EXPECT_GT(st_all.levels[l].faces_stalled, 0);
+}
+
+// The geometric tolerances (README, "Geometric tolerances"). Level 1 has no
+// stall (no face has a parent yet), so the faces above T are exactly those
+// selected or within tolerance, and the faces not above T are those left or
+// selected over the flat limit.
+TEST(Refine, TolerancesSplitTheThesisSelection) {
+  for (const char* name : {"decimated-knight.off", "eight.off", "bunny-npm.obj"}) {
+    SCOPED_TRACE(name);
+    const Mesh in = shipped(name);
+    RefineOptions thesis = opts(Mode::kIteas, 1), tol = thesis, flat = thesis;
+    thesis.stall_ratio = thesis.tolerance = thesis.flat_limit = 0;
+    tol.flat_limit = 0;
+    tol.tolerance = 0.002;  // coarse, so that every mesh has faces within it
+    flat.tolerance = 0;
+    RefineStats st_thesis, st_tol, st_flat;
+    refined(in, thesis, &st_thesis);
+    refined(in, tol, &st_tol);
+    refined(in, flat, &st_flat);
+    const LevelStats &a = st_thesis.levels.at(0), &b = st_tol.levels.at(0), &c = st_flat.levels.at(0);
+    EXPECT_GT(b.faces_within_tolerance, 0);
+    EXPECT_EQ(b.faces_selected + b.faces_within_tolerance, a.faces_selected);
+    EXPECT_EQ(b.faces_over_flat_limit, 0);
+    EXPECT_EQ(c.faces_selected - c.faces_over_flat_limit, a.faces_selected);
+    EXPECT_EQ(c.faces_within_tolerance, 0);
+    EXPECT_EQ(a.faces_within_tolerance + a.faces_over_flat_limit, 0);
+  }
+  // The coarse decimated knight has faces bending less than T that are
+  // visibly faceted (1/512 of the diagonal, the default flat limit).
+  RefineStats st;
+  refined(shipped("decimated-knight.off"), opts(Mode::kIteas, 1), &st);
+  EXPECT_GT(st.levels.at(0).faces_over_flat_limit, 0);
+}
+
+// Both tolerances measure how far a split would move the surface, relative
+// to the diagonal: a flat mesh is never refined whatever the threshold, and
+// a flat limit of the whole diagonal selects nothing.
+TEST(Refine, TolerancesAreGeometric) {
+  const double o[3] = {1, 2, 3}, u[3] = {2, 0.5, 1}, v[3] = {-0.5, 1.5, 0.25};
+  const Mesh grid = test::planar_grid(12, o, u, v);
+  RefineOptions all = opts(Mode::kIteas, 3);
+  all.threshold.kind = ThresholdSpec::Kind::kDegrees;
+  all.threshold.value = -1;  // every face is above T
+  RefineStats st;
+  const Mesh out = refined(grid, all, &st);
+  EXPECT_EQ(out.num_faces(), grid.num_faces());
+  EXPECT_EQ(st.stopped_by, "converged");
+  ASSERT_EQ(st.levels.size(), 0u);
+  RefineOptions whole = opts(Mode::kIteas, 1);
+  whole.tolerance = 0;
+  whole.flat_limit = 1;
+  refined(shipped("decimated-knight.off"), whole, &st);
+  EXPECT_EQ(st.levels.at(0).faces_over_flat_limit, 0);
 }
 
 TEST(Refine, CancellationIsHonoured) {

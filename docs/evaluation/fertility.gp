@@ -6,4 +6,4 @@ set ylabel 'Hausdorff distance (% of diagonal)'
 set logscale x
 set key outside right
 set grid
-plot for [i=0:9] 'fertility.dat' index i using 1:2 with linespoints title columnheader(1)
+plot for [i=0:10] 'fertility.dat' index i using 1:2 with linespoints title columnheader(1)
