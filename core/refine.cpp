@@ -158,13 +158,15 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
 // adjacency is rebuilt. Children of face f are 4f+j: child j (< 3) keeps
 // parent vertex j at local corner j, child 3 is the centre; the half of the
 // parent edge opposite corner k next to vertex k+1 (k+2) is the edge opposite
-// local corner k of child k+1 (k+2).
-void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
+// local corner k of child k+1 (k+2). Without |connectivity| (the last level,
+// no statistics to follow) the children's corner table and vertex classes are
+// not made: nothing would read them.
+void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const int32_t* opp = s.ct.opposites().data();
   auto canonical = [opp](int64_t c) { return opp[c] < 0 || c < opp[c]; };
-  derive_classes = derive_classes && s.green.empty();
+  derive_classes = derive_classes && s.green.empty() && connectivity;
 
   // Topology pass 1: number edges (canonical corners) in corner order.
   const int64_t chunks = (nc + kChunk - 1) / kChunk;
@@ -289,14 +291,14 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
   // k of child k (still the start of an open fan); the new vertex on the edge
   // opposite corner k starts its fan at corner k+1 of child k+2.
   std::vector<int32_t>& vc = s.ct.vertex_corners();
-  vc.resize(size_t(nv) + ne);
-  parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
+  if (connectivity) vc.resize(size_t(nv) + ne);
+  if (connectivity) parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t c = vc[v];
       if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
     }
   });
-  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+  if (connectivity) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t f = b; f < e; ++f)
       for (int k = 0; k < 3; ++k) {
         const int64_t c = 3 * f + k;
@@ -313,9 +315,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
   std::vector<int32_t>().swap(fg);
 
   // Children's opposites from the parent's alone.
-  Array<int32_t> nopp(12 * size_t(nf));
+  Array<int32_t> nopp(connectivity ? 12 * size_t(nf) : 0);
   static constexpr int kNext[3] = {1, 2, 0}, kPrev[3] = {2, 0, 1};
-  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+  if (connectivity) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
     int32_t* no = nopp.data();
     for (int64_t f = b; f < e; ++f) {
       const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
@@ -338,8 +340,12 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes) {
     }
   });
   note_peak(s, m, vbytes(nopp));
-  s.ct.opposites().swap(nopp);
-  Array<int32_t>().swap(nopp);
+  if (connectivity) {
+    s.ct.opposites().swap(nopp);
+    Array<int32_t>().swap(nopp);
+  } else {
+    s.ct = CornerTable();  // stale: no use may follow
+  }
   std::vector<float>().swap(s.theta);
   // Without creases the next level's sharp edges are its boundary: no flags.
   std::vector<uint8_t>().swap(s.sharp);
@@ -1001,7 +1007,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path) {
-        uniform_level(s, m, ls, crease <= 0);
+        uniform_level(s, m, ls, crease <= 0, level < o.levels || statistics);
       } else {
         selected.resize(m.num_faces());
         std::iota(selected.begin(), selected.end(), 0);
