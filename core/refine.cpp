@@ -290,21 +290,23 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   // Vertex corners follow: an old vertex's corner k of face f becomes corner
   // k of child k (still the start of an open fan); the new vertex on the edge
   // opposite corner k starts its fan at corner k+1 of child k+2.
-  std::vector<int32_t>& vc = s.ct.vertex_corners();
-  if (connectivity) vc.resize(size_t(nv) + ne);
-  if (connectivity) parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
-    for (int64_t v = b; v < e; ++v) {
-      const int32_t c = vc[v];
-      if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
-    }
-  });
-  if (connectivity) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-    for (int64_t f = b; f < e; ++f)
-      for (int k = 0; k < 3; ++k) {
-        const int64_t c = 3 * f + k;
-        if (canonical(c)) vc[evert[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+  if (connectivity) {
+    std::vector<int32_t>& vc = s.ct.vertex_corners();
+    vc.resize(size_t(nv) + ne);
+    parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v) {
+        const int32_t c = vc[v];
+        if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
       }
-  });
+    });
+    parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+      for (int64_t f = b; f < e; ++f)
+        for (int k = 0; k < 3; ++k) {
+          const int64_t c = 3 * f + k;
+          if (canonical(c)) vc[evert[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+        }
+    });
+  }
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
   Array<int32_t>().swap(evert);
   Array<int32_t>().swap(ewedge);
@@ -978,8 +980,6 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     const double diagonal = bounding_box(m).diagonal();
     s.tolerance = effective_tolerance(o) * diagonal;
     s.flat_limit = effective_flat_limit(o) * diagonal;
-  }
-  if (adaptive) {
     // (0.1 % above half: the reported minimum comes from a polynomial atan2
     // accurate to 1e-5 rad, which must not read a guarded triangle as under.)
     const double floor_rad = 0.5005 * stats.quality_before.min_angle * (M_PI / 180.0);
