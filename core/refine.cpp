@@ -840,23 +840,19 @@ void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
 float edge_deviation(const State& s, const Mesh& m, int32_t c) {
   float p[3];
   butterfly_point(s.bctx, c, m.positions.data(), p);
-  auto at = [&](int32_t corner) { return &m.positions[3 * size_t(m.corner_vertex[corner])]; };
-  const float *a = at(next_corner(c)), *b = at(prev_corner(c));
+  const float* a = &m.positions[3 * size_t(m.corner_vertex[next_corner(c)])];
+  const float* b = &m.positions[3 * size_t(m.corner_vertex[prev_corner(c)])];
   double d[3], n[3] = {0, 0, 0};
   for (int j = 0; j < 3; ++j) d[j] = double(p[j]) - 0.5 * (double(a[j]) + double(b[j]));
-  const int32_t o = s.ct.opposites()[c];
-  for (int32_t k : {c, o}) {
+  const double whole = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  for (const int32_t k : {c, s.ct.opposites()[c]}) {
+    double f[3];
     if (k < 0) continue;
-    const float *x = at(k), *y = at(next_corner(k)), *z = at(prev_corner(k));
-    const double u[3] = {double(y[0]) - x[0], double(y[1]) - x[1], double(y[2]) - x[2]};
-    const double w[3] = {double(z[0]) - x[0], double(z[1]) - x[1], double(z[2]) - x[2]};
-    const double f[3] = {u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]};
-    const double len = std::sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]);
-    if (!(len > 0)) return float(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
-    for (int j = 0; j < 3; ++j) n[j] += f[j] / len;
+    if (!face_normal(m, k / 3, f)) return float(whole);
+    for (int j = 0; j < 3; ++j) n[j] += f[j];
   }
   const double nl = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-  if (!(nl > 1e-6)) return float(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
+  if (!(nl > 1e-6)) return float(whole);
   return float(std::fabs(d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) / nl);
 }
 

@@ -10,6 +10,9 @@ using json = nlohmann::json;
 
 double round3(double x) { return std::isfinite(x) ? std::round(x * 1000.0) / 1000.0 : 0.0; }
 
+// An option that is a positive number or off (0).
+json number_or_off(double v) { return v > 0 ? json(v) : json("off"); }
+
 const char* scope_name(Scope s) { return s == Scope::kLevel ? "level" : "input"; }
 
 }  // namespace
@@ -31,15 +34,11 @@ json options_json(const Options& o, const std::string& output_format) {
             {"color_bits", o.out.color_bits},
             {"generic_bits", o.out.generic_bits},
             {"draco_level", o.out.draco_level}};
-  if (r.crease_angle > 0) j["crease_angle"] = r.crease_angle;
-  else j["crease_angle"] = "off";
-  if (const double stall = effective_stall_ratio(r); stall > 0) j["stall_ratio"] = stall;
-  else j["stall_ratio"] = "off";
+  j["crease_angle"] = number_or_off(r.crease_angle);
+  j["stall_ratio"] = number_or_off(effective_stall_ratio(r));
   // Fractions of the bounding-box diagonal in effect.
-  if (const double t = effective_tolerance(r); t > 0) j["tolerance"] = t;
-  else j["tolerance"] = "off";
-  if (const double f = effective_flat_limit(r); f > 0) j["flat_limit"] = f;
-  else j["flat_limit"] = "off";
+  j["tolerance"] = number_or_off(effective_tolerance(r));
+  j["flat_limit"] = number_or_off(effective_flat_limit(r));
   return j;
 }
 
