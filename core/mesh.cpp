@@ -10,14 +10,34 @@
 
 namespace iteas {
 
-void advise_huge_pages(void* p, size_t bytes) {
-#if defined(__linux__) && defined(MADV_HUGEPAGE)
-  constexpr uintptr_t kHuge = uintptr_t(2) << 20;
-  if (bytes < 2 * kHuge) return;
+void prepare_pages(void* p, size_t bytes) {
+#if defined(__linux__)
+  constexpr uintptr_t kPage = 4096, kHuge = uintptr_t(2) << 20;
+  if (bytes < kPrefaultBytes) return;
+  const uintptr_t lo = reinterpret_cast<uintptr_t>(p), hi = lo + bytes;
+#if defined(MADV_HUGEPAGE)
   // The 2 MB-aligned interior of the block; advice only, errors ignored.
-  const uintptr_t b = (reinterpret_cast<uintptr_t>(p) + kHuge - 1) & ~(kHuge - 1);
-  const uintptr_t e = (reinterpret_cast<uintptr_t>(p) + bytes) & ~(kHuge - 1);
-  if (e > b) madvise(reinterpret_cast<void*>(b), e - b, MADV_HUGEPAGE);
+  if (bytes >= 2 * kHuge) {
+    const uintptr_t b = (lo + kHuge - 1) & ~(kHuge - 1), e = hi & ~(kHuge - 1);
+    if (e > b) madvise(reinterpret_cast<void*>(b), e - b, MADV_HUGEPAGE);
+  }
+#endif
+#if defined(MADV_POPULATE_WRITE)
+  // Every page of the block will be written: fault them all in with one call
+  // instead of one trap per page (Linux 5.14+; older kernels say EINVAL and
+  // the pages fault on first write as before).
+  // A block the allocator handed back from memory it kept (its middle and
+  // last pages already resident) is left alone: walking it costs more than
+  // it saves.
+  const uintptr_t b = (lo + kPage - 1) & ~(kPage - 1), e = hi & ~(kPage - 1);
+  if (e <= b) return;
+  auto resident = [](uintptr_t page) {
+    unsigned char v = 0;
+    return mincore(reinterpret_cast<void*>(page), kPage, &v) == 0 && (v & 1) != 0;
+  };
+  if (resident(b + ((e - b) / 2 & ~(kPage - 1))) && resident(e - kPage)) return;
+  madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
+#endif
 #else
   (void)p;
   (void)bytes;

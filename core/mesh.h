@@ -16,10 +16,14 @@ namespace iteas {
 // refinement writes every entry of the arrays it grows, so the zero fill was a
 // wasted single-threaded pass (and it took every page fault on one thread).
 // Anything that needs zeros says so: assign(n, 0) or resize(n, 0).
-// Large arrays are also offered to transparent huge pages (where the system
-// allows it on request): refinement writes tens of MB of fresh memory per
-// level, and one fault per 2 MB instead of per 4 KB is most of its kernel time.
-void advise_huge_pages(void* p, size_t bytes);
+// Large arrays are made ready before they are written: their pages are
+// faulted in with one system call (MADV_POPULATE_WRITE) rather than one trap
+// per 4 KB page, and those of 4 MB or more are offered to transparent huge
+// pages (where the system allows it on request). Refinement writes tens of MB
+// of fresh memory per level, and page faults were most of its kernel time:
+// about 10 us each on a virtual machine, against 0.75 us per page populated.
+constexpr size_t kPrefaultBytes = 64 * 1024;
+void prepare_pages(void* p, size_t bytes);
 
 template <typename T>
 struct NoInitAllocator : std::allocator<T> {
@@ -31,7 +35,7 @@ struct NoInitAllocator : std::allocator<T> {
   struct rebind { using other = NoInitAllocator<U>; };
   T* allocate(size_t n) {
     T* p = std::allocator<T>::allocate(n);
-    advise_huge_pages(p, n * sizeof(T));
+    prepare_pages(p, n * sizeof(T));
     return p;
   }
   template <typename U>
