@@ -7,6 +7,9 @@
 // table from the indexed triangles; OpenMesh's main column does not include
 // building its halfedge mesh, so the last columns add that for a like-for-like
 // figure (the main ratios stay the stricter one).
+// A second table runs ours without statistics on one thread pinned to each
+// CPU in turn, then on two: virtual CPUs need not be equally fast (a busy
+// neighbour on the host), and a one-thread run lands on either.
 //   build/bench_butterfly [--warm] [tests/data/bunny-npm.obj] [bun_zipper.ply]
 #include <OpenMesh/Core/Mesh/TriMesh_ArrayKernelT.hh>
 #include <OpenMesh/Tools/Subdivider/Uniform/ModifiedButterFlyT.hh>
@@ -18,6 +21,7 @@
 #include <fstream>
 #include <iterator>
 #include <malloc.h>
+#include <sched.h>
 #include <string>
 #include <vector>
 
@@ -149,6 +153,50 @@ int main(int argc, char** argv) {
                 z2, z2 / z,
                 double(om_last.peak_growth) / double(om_last.triangles),
                 double(one_last.peak_growth) / double(one_last.triangles), omb, z / omb);
+    std::fflush(stdout);
+  }
+
+  // One thread on each CPU, then two threads, without statistics.
+  cpu_set_t all;
+  if (sched_getaffinity(0, sizeof(all), &all) != 0) return 0;
+  std::vector<int> cpus;
+  for (int c = 0; c < CPU_SETSIZE && cpus.size() < 4; ++c)
+    if (CPU_ISSET(c, &all)) cpus.push_back(c);
+  if (cpus.size() < 2) return 0;
+  std::printf("\n| mesh | level |");
+  for (int c : cpus) std::printf(" 1T on CPU %d ms |", c);
+  std::printf(" 2T ms |");
+  for (int c : cpus) std::printf(" 2T vs CPU %d |", c);
+  std::printf(" 2T vs mean of CPUs |\n|---|---:|");
+  for (size_t i = 0; i < 2 * cpus.size() + 2; ++i) std::printf("---:|");
+  std::printf("\n");
+  for (const Case& c : cases) {
+    const iteas::Mesh input = load(c.path);
+    const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
+    const int reps = out_tris > 2000000 ? 5 : (out_tris > 200000 ? 9 : 21);
+    std::vector<std::vector<double>> one(cpus.size());
+    std::vector<double> two;
+    for (int r = 0; r < reps; ++r) {
+      for (size_t i = 0; i < cpus.size(); ++i) {
+        cpu_set_t one_cpu;
+        CPU_ZERO(&one_cpu);
+        CPU_SET(cpus[i], &one_cpu);
+        sched_setaffinity(0, sizeof(one_cpu), &one_cpu);
+        one[i].push_back(ours(input, c.level, 1, false).seconds);
+        sched_setaffinity(0, sizeof(all), &all);
+      }
+      two.push_back(ours(input, c.level, 2, false).seconds);
+    }
+    const double t2 = median(two);
+    double mean = 0;
+    std::printf("| %s | %d |", c.name.c_str(), c.level);
+    for (auto& v : one) {
+      std::printf(" %.3f |", 1e3 * median(v));
+      mean += median(v) / double(one.size());
+    }
+    std::printf(" %.3f |", 1e3 * t2);
+    for (auto& v : one) std::printf(" %.2fx |", median(v) / t2);
+    std::printf(" %.2fx |\n", mean / t2);
     std::fflush(stdout);
   }
   return 0;
