@@ -62,6 +62,9 @@ static double median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
+// Fewer repetitions for the larger outputs.
+static int repetitions(int64_t out_tris) { return out_tris > 2000000 ? 5 : (out_tris > 200000 ? 9 : 21); }
+
 static Run ours(const iteas::Mesh& input, int levels, int threads, bool statistics = true) {
   iteas::Mesh m = input;
   iteas::RefineOptions o;
@@ -129,7 +132,7 @@ int main(int argc, char** argv) {
   for (const Case& c : cases) {
     const iteas::Mesh input = load(c.path);
     const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
-    const int reps = out_tris > 2000000 ? 5 : (out_tris > 200000 ? 9 : 21);
+    const int reps = repetitions(out_tris);
     std::vector<double> om_t, om_bt, t1, t2, t0, t02;
     Run om_last{}, one_last{};
     for (int r = 0; r < reps; ++r) {
@@ -173,7 +176,7 @@ int main(int argc, char** argv) {
   for (const Case& c : cases) {
     const iteas::Mesh input = load(c.path);
     const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
-    const int reps = out_tris > 2000000 ? 5 : (out_tris > 200000 ? 9 : 21);
+    const int reps = repetitions(out_tris);
     std::vector<std::vector<double>> one(cpus.size());
     std::vector<double> two;
     for (int r = 0; r < reps; ++r) {
