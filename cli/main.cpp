@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "io/memory_budget.h"
 #include "io/pipeline.h"
 #include "server/server.h"
 
@@ -173,6 +174,7 @@ int inspect(const std::vector<std::string>& args) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  iteas::keep_freed_memory();
   if (argc < 2) return usage("missing command");
   const std::string cmd = argv[1];
   const std::vector<std::string> args(argv + 2, argv + argc);

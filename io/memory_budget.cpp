@@ -46,6 +46,11 @@ void release(void* p) noexcept {
 
 }  // namespace
 
+void keep_freed_memory() {
+  mallopt(M_MMAP_THRESHOLD, 32 << 20);
+  mallopt(M_TRIM_THRESHOLD, 128 << 20);
+}
+
 int64_t current_heap_bytes() { return g_current.load(std::memory_order_relaxed); }
 int64_t peak_heap_bytes() { return g_peak.load(std::memory_order_relaxed); }
 void reset_peak_heap_bytes() { g_peak.store(g_current.load(std::memory_order_relaxed), std::memory_order_relaxed); }

@@ -185,8 +185,18 @@ export function concat(arrays) {
 }
 
 // --- a server process on a free loopback port ---------------------------------
+// Every server started here, so a failed test cannot leave one running (which
+// would keep the test process, and CI, waiting for it).
+const live = new Set();
+export function killLeftoverServers() {
+  for (const proc of live) if (proc.exitCode === null && proc.signalCode === null) proc.kill('SIGKILL');
+  live.clear();
+}
+
 export async function startServer(flags = [], env = {}) {
   const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
+  live.add(proc);
+  proc.on('exit', () => live.delete(proc));
   let out = '';
   proc.stdout.on('data', (d) => { out += d; });
   proc.stderr.on('data', (d) => { out += d; });

@@ -7,7 +7,7 @@ import fs from 'node:fs';
 import net from 'node:net';
 import path from 'node:path';
 import Ajv2020 from 'ajv/dist/2020.js';
-import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes, checkGltfOutput, startServer, stopServer } from './check.mjs';
+import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes, checkGltfOutput, startServer, stopServer, killLeftoverServers } from './check.mjs';
 
 // ITEAS_JS_ONLY=a,b runs only the tests named a or b.
 const only = (process.env.ITEAS_JS_ONLY || '').split(',').filter(Boolean);
@@ -47,7 +47,7 @@ const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 let server;
 before(async () => { server = await startServer(['--workers', '2', '--queue', '64', '--max-upload-bytes', String(8 << 20), '--read-timeout', '2']); });
-after(async () => { if (server) await stopServer(server); });
+after(async () => { if (server) await stopServer(server); killLeftoverServers(); });
 
 function meshesToSend() {
   const files = listFiles(DATA);
@@ -234,7 +234,16 @@ maybe('backpressure')('a full queue answers 429 with Retry-After; SIGTERM drains
   const exited = new Promise((resolve) => s.proc.on('exit', (code) => resolve(code)));
   const s2 = await startServer(['--workers', '1', '--grace', '20']);
   const inflight = fetch(`${s2.url}/v1/refine?mode=uniform&levels=4&compression=none`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
-  await sleep(150);
+  // In flight means being refined, not still in the listen backlog (a loaded
+  // machine under ThreadSanitizer can take longer than any fixed sleep); the
+  // SIGTERM goes once the job runs, or at once if the response came first.
+  let settled = false;
+  inflight.finally(() => { settled = true; }).catch(() => {});
+  for (let i = 0; i < 600 && !settled; i++) {
+    const m = await fetch(`${s2.url}/metrics`).then((r) => r.text());
+    if (/iteas_jobs_running [1-9]/.test(m)) break;
+    await sleep(50);
+  }
   const exited2 = new Promise((resolve) => s2.proc.on('exit', (code) => resolve(code)));
   s2.proc.kill('SIGTERM');
   const done = await inflight;

@@ -6,7 +6,7 @@ import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import path from 'node:path';
 import { chromium } from 'playwright-core';
-import { DATA, SOURCE_DIR, startServer, stopServer } from './check.mjs';
+import { DATA, SOURCE_DIR, startServer, stopServer, killLeftoverServers } from './check.mjs';
 
 const CHROMIUM = process.env.CHROMIUM || '/usr/bin/chromium';
 const OUT = process.env.ITEAS_TEST_OUTPUT || path.join(SOURCE_DIR, 'build/test-output');
@@ -21,7 +21,7 @@ before(async () => {
       '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
   });
 });
-after(async () => { if (browser) await browser.close(); });
+after(async () => { if (browser) await browser.close(); killLeftoverServers(); });
 
 async function openPage(url) {
   const page = await browser.newPage({ viewport: { width: 1280, height: 1000 } });
