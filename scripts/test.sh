@@ -26,6 +26,6 @@ ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_CORPUS=/nonexist
 echo "[test] ThreadSanitizer build: the server tests"
 cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=Tsan -DBUILD_TESTING=OFF >/dev/null
 ninja -C build-tsan iteas
-TSAN_OPTIONS=halt_on_error=1:second_deadlock_stack=1 ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
+TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp" ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
   ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure node --test tests/js/server.test.mjs
 echo "[test] all passed"
