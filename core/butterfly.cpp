@@ -2,6 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <type_traits>
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "core/parallel.h"
 
@@ -18,14 +22,24 @@ void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, do
 }
 
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
-                       VertexClass& out, int threads) {
+                       VertexClass& out, int threads, bool sharp_is_boundary) {
   const int32_t nv = mesh.num_vertices();
   out.valence.assign(nv, 0);
   out.complete.assign(nv, 0);
+  // The fans the corner table recorded: with no crease, a closed fan has no
+  // sharp edge (each of its edges has a face on both sides), so the walk below
+  // would find what they say.
+  const bool recorded = sharp_is_boundary && ct.fans().size() == size_t(nv);
   parallel_for(nv, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t first = ct.vertex_corner(int32_t(v));
       if (first < 0) continue;
+      if (recorded && ct.fans()[v] != CornerTable::kUnknownFan) {
+        const int32_t f = ct.fans()[v];
+        out.valence[v] = f > 0 ? f : 1 - f;
+        out.complete[v] = f >= 3;
+        continue;
+      }
       int32_t faces = 0, c = first;
       bool closed = false, has_sharp = false;
       while (true) {
@@ -56,7 +70,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     out.offset[v] = int32_t(total);
     total += k;
   }
-  out.corner.resize(size_t(total));
+  out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
   const int32_t* cv = mesh.corner_vertex.data();
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
@@ -168,6 +182,27 @@ struct WeightTable {
 };
 const WeightTable kWeights;  // immutable after static initialisation
 
+// Where corner x0 sits in a stored ring of K corners (K if absent). Rings
+// are padded with kRingPad entries that match no corner, so up to 8 are
+// compared at once without a branch per entry (the entry at which a loop
+// would stop varies from edge to edge and was mispredicted).
+ITEAS_INLINE int ring_position(const int32_t* rc, int K, int32_t x0) {
+#if defined(__SSE2__)
+  if (K <= 8) {
+    const __m128i x = _mm_set1_epi32(x0);
+    const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rc));
+    const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rc + 4));
+    const unsigned mask = (unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(lo, x)))) |
+                           unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(hi, x)))) << 4) &
+                          ((1u << K) - 1);
+    return mask ? __builtin_ctz(mask) : K;
+  }
+#endif
+  int i = 0;
+  while (i < K && rc[i] != x0) ++i;
+  return i;
+}
+
 // Extraordinary rule at vertex v (corner x0 at v, whose next vertex is the
 // other endpoint of the edge): 3/4 v + sum_j s_j e_j over the ring in order.
 template <bool G, typename Sink>
@@ -180,12 +215,22 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
     // The ring from x0 on is the stored ring rotated to x0's place.
     const int32_t* rc = m.ring_corner + m.ring_offset[v];
     const int32_t* nb = m.ring_neighbour + m.ring_offset[v];
-    int i = 0;
-    while (i < K && rc[i] != x0) ++i;
-    if (i < K) {
-      for (int j = 0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
-        const double s = w ? w[j] : formula_weight(K, j);
-        if (s != 0.0) out(nb[i], s * scale);
+    const int i0 = ring_position(rc, K, x0);
+    if (i0 < K) {
+      auto ring = [&](auto& sink) {
+        for (int j = 0, i = i0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
+          const double s = w ? w[j] : formula_weight(K, j);
+          if (s != 0.0) sink(nb[i], s * scale);
+        }
+      };
+      if constexpr (std::is_same_v<Sink, PointSum>) {
+        // Summed in registers (the caller's sink lives in memory): the same
+        // terms in the same order, so the same bits.
+        PointSum sum = out;
+        ring(sum);
+        out = sum;
+      } else {
+        ring(out);
       }
       return;
     }

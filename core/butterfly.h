@@ -29,9 +29,11 @@ struct VertexClass {
 // vertices, so with the input's vertex count as the limit this covers them
 // all; the extraordinary rule then reads its ring instead of walking the fan
 // once per edge (same terms in the same order).
+constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width search
+
 struct RingTable {
   std::vector<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
-  std::vector<int32_t> corner, neighbour;
+  std::vector<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
 };
 
 struct ButterflyContext {
@@ -58,8 +60,10 @@ void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, 
 void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
                       std::vector<uint8_t>& sharp, int threads = 1);
 
+// |sharp_is_boundary|: the sharp flags mark boundary edges only (no crease);
+// the fans the corner table recorded are then used instead of walking.
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
-                       VertexClass& out, int threads = 1);
+                       VertexClass& out, int threads = 1, bool sharp_is_boundary = false);
 
 // Rings of the extraordinary vertices below |limit| on the current level.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,

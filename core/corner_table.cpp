@@ -3,6 +3,10 @@
 #include <algorithm>
 #include <unordered_map>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 #include "core/parallel.h"
 
 namespace iteas {
@@ -18,6 +22,7 @@ constexpr int64_t kVertexGrain = 512;
 // (v -> next) and its incoming ones (prev -> v), so the edge matching below
 // reads one contiguous run per vertex and nothing else.
 struct VertexCorners {
+  static constexpr size_t kPad = 8;
   std::vector<int32_t> offset;  // nv + 1
   Array<int32_t> corners;
   Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
@@ -26,9 +31,12 @@ struct VertexCorners {
     offset.assign(size_t(nv) + 1, 0);
     for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
     for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
-    corners.resize(corner_vertex.size());
-    nexts.resize(corner_vertex.size());
-    prevs.resize(corner_vertex.size());
+    // kPad entries after the last run, matching no vertex: a run of up to 8 is
+    // then compared 8 at a time without reading past the arrays.
+    corners.resize(corner_vertex.size() + kPad);
+    nexts.resize(corner_vertex.size() + kPad);
+    prevs.resize(corner_vertex.size() + kPad);
+    for (size_t i = corner_vertex.size(); i < corner_vertex.size() + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
     const int32_t nc = static_cast<int32_t>(corner_vertex.size());
     for (int32_t f = 0; f < nc; f += 3)
@@ -40,6 +48,36 @@ struct VertexCorners {
       }
   }
 };
+
+// In a's run [rb, re): how many entries have prev b (edges b -> a, |reverse|;
+// |match| the corner of the last) and how many have next b (edges a -> b,
+// |same|). Runs of up to 8 (nearly every vertex) are compared 8 at a time:
+// the scalar loop's branches on the vertex ids were mispredicted.
+inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t b, int32_t& reverse, int32_t& same,
+                        int32_t& match) {
+#if defined(__SSE2__)
+  const int32_t n = re - rb;
+  if (n <= 8) {
+    const __m128i x = _mm_set1_epi32(b);
+    auto mask8 = [&](const int32_t* p) {
+      const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p));
+      const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + 4));
+      return (unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(lo, x)))) |
+              unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(hi, x)))) << 4) &
+             ((1u << n) - 1);
+    };
+    const unsigned r = mask8(vc.prevs.data() + rb), s = mask8(vc.nexts.data() + rb);
+    reverse = __builtin_popcount(r);
+    same = __builtin_popcount(s);
+    match = r ? vc.corners[rb + 31 - __builtin_clz(r)] : -1;
+    return;
+  }
+#endif
+  for (int32_t j = rb; j < re; ++j) {
+    if (vc.prevs[j] == b) { ++reverse; match = vc.corners[j]; }
+    same += vc.nexts[j] == b;
+  }
+}
 
 }  // namespace
 
@@ -66,10 +104,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       for (int32_t i = rb; i < re; ++i) {
         const int32_t b = vc.nexts[i], c = prev_corner(vc.corners[i]);
         int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
-        for (int32_t j = rb; j < re; ++j) {
-          if (vc.prevs[j] == b) { ++reverse; match = vc.corners[j]; }
-          same += vc.nexts[j] == b;
-        }
+        count_edges(vc, rb, re, b, reverse, same, match);
         if (reverse == 1 && same == 1) {
           opposite_[c] = next_corner(match);
           continue;
@@ -106,7 +141,10 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   // vertex). Others walk left. In parallel. When splitting, a vertex whose
   // first fan does not hold all its corners (a non-manifold vertex) is left to
   // the walk below, in order.
+  // The fan from there is then walked once (its size tells a non-manifold
+  // vertex, and is recorded for classifying vertices).
   std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
+  fan_.assign(nv, 0);
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     for (int64_t v = begin; v < end; ++v) {
       const int32_t b = vc.offset[v], e = vc.offset[v + 1];
@@ -118,12 +156,20 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       if (!open) first = swing_right(start);
       else
         for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
-      if (split_vertices) {
-        int32_t size = 1;
-        for (int32_t c = swing_right(first); c >= 0 && c != first && size <= e - b; c = swing_right(c)) ++size;
-        if (size != e - b) { several[v] = 1; continue; }
+      // A fan holds at most the vertex's e - b corners; a longer walk is malformed.
+      int32_t faces = 0;
+      bool closed = false;
+      for (int32_t c = first;;) {
+        ++faces;
+        const int32_t s = swing_right(c);
+        if (s < 0) break;
+        if (s == first) { closed = true; break; }
+        if (faces > e - b) break;
+        c = s;
       }
+      if (split_vertices && faces != e - b) { several[v] = 1; continue; }
       vertex_corner_[v] = first;
+      fan_[v] = faces > e - b ? kUnknownFan : (closed ? faces : -faces);
     }
   }, kVertexGrain);
   if (!split_vertices) return report;
@@ -146,6 +192,8 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
         visited[c] = 1;
         c = swing_right(c);
       } while (c >= 0 && c != first && !visited[c]);
+      const int32_t faces = int32_t(fan.size());
+      const int32_t fan_of = c == first ? faces : (c < 0 ? -faces : kUnknownFan);
       int32_t target = v;
       if (vertex_corner_[v] >= 0) {
         target = mesh.num_vertices();
@@ -153,9 +201,11 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
         for (VertexChannel& ch : mesh.vertex_channels)
           for (int k = 0; k < 3; ++k) ch.data.push_back(ch.data[3 * size_t(v) + k]);
         vertex_corner_.push_back(-1);
+        fan_.push_back(0);
         ++report.split_vertices;
       }
       vertex_corner_[target] = first;
+      fan_[target] = fan_of;
       if (target == v) continue;
       for (int32_t fc : fan) {
         mesh.corner_vertex[fc] = target;

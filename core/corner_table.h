@@ -6,6 +6,7 @@
 // it is counted, never asserted.
 #pragma once
 
+#include <climits>
 #include <cstdint>
 #include <vector>
 
@@ -46,6 +47,15 @@ class CornerTable {
     return o < 0 ? -1 : prev_corner(o);
   }
 
+  // Per vertex, the faces of the fan that starts at vertex_corner(): n for a
+  // closed fan, -n for an open one, 0 for an unused vertex, kUnknownFan where
+  // the walk found a malformed fan. Recorded by build() from the walk it makes
+  // anyway, so that classifying vertices needs no second walk; empty once the
+  // table is changed by other means (forget_fans()).
+  static constexpr int32_t kUnknownFan = INT32_MIN;
+  const std::vector<int32_t>& fans() const { return fan_; }
+  void forget_fans() { std::vector<int32_t>().swap(fan_); }
+
   Array<int32_t>& opposites() { return opposite_; }
   const Array<int32_t>& opposites() const { return opposite_; }
   std::vector<int32_t>& vertex_corners() { return vertex_corner_; }
@@ -53,6 +63,7 @@ class CornerTable {
  private:
   Array<int32_t> opposite_;
   std::vector<int32_t> vertex_corner_;
+  std::vector<int32_t> fan_;
 };
 
 }  // namespace iteas

@@ -106,7 +106,7 @@ struct State {
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
-  const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) +
+  const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) + vbytes(s.bctx.vclass.valence) +
                     vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) + vbytes(s.rings.corner) +
                     vbytes(s.rings.neighbour) + extra;
@@ -148,7 +148,8 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
   mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
-  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads);
+  const bool creases = o.crease_angle > 0 && need_theta;  // as mark_sharp_edges decides
+  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads, !creases);
   if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
 }
 
@@ -167,6 +168,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   const int32_t* opp = s.ct.opposites().data();
   auto canonical = [opp](int64_t c) { return opp[c] < 0 || c < opp[c]; };
   derive_classes = derive_classes && s.green.empty() && connectivity;
+  s.ct.forget_fans();  // the arithmetic below changes the table
 
   // Topology pass 1: number edges (canonical corners) in corner order.
   const int64_t chunks = (nc + kChunk - 1) / kChunk;
