@@ -49,6 +49,16 @@ struct VertexCorners {
   }
 };
 
+// Set bits of a byte (a table: without -mpopcnt the builtin is a library call).
+struct BitCounts {
+  uint8_t n[256];
+  constexpr BitCounts() : n() {
+    for (int i = 1; i < 256; ++i) n[i] = uint8_t(n[i >> 1] + (i & 1));
+  }
+  constexpr uint8_t operator[](unsigned i) const { return n[i]; }
+};
+constexpr BitCounts kBits;
+
 // In a's run [rb, re): how many entries have prev b (edges b -> a, |reverse|;
 // |match| the corner of the last) and how many have next b (edges a -> b,
 // |same|). Runs of up to 8 (nearly every vertex) are compared 8 at a time:
@@ -67,8 +77,8 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
              ((1u << n) - 1);
     };
     const unsigned r = mask8(vc.prevs.data() + rb), s = mask8(vc.nexts.data() + rb);
-    reverse = __builtin_popcount(r);
-    same = __builtin_popcount(s);
+    reverse = kBits[r];
+    same = kBits[s];
     match = r ? vc.corners[rb + 31 - __builtin_clz(r)] : -1;
     return;
   }
