@@ -59,6 +59,10 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
   }, 512);  // a fan walk per vertex: smaller pieces than per-corner loops
 }
 
+namespace {
+void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads);
+}  // namespace
+
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads) {
   limit = std::min(limit, mesh.num_vertices());
@@ -87,6 +91,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       }
     }
   }, 512);
+  ring_points(mesh, vclass, out, threads);
 }
 
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {
@@ -115,6 +120,7 @@ struct View {
   const int32_t* ring_offset;
   const int32_t* ring_corner;
   const int32_t* ring_neighbour;
+  const double* ring_point;
   explicit View(const ButterflyContext& ctx)
       : ct(ctx.ct),
         cv(ctx.mesh->corner_vertex.data()),
@@ -127,7 +133,8 @@ struct View {
         ring_limit(!kGreens && ctx.rings ? int32_t(ctx.rings->offset.size()) : 0),
         ring_offset(ring_limit ? ctx.rings->offset.data() : nullptr),
         ring_corner(ring_limit ? ctx.rings->corner.data() : nullptr),
-        ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr) {}
+        ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr),
+        ring_point(ring_limit ? ctx.rings->point.data() : nullptr) {}
   uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
   // No sharp flags (an empty array) means: sharp = boundary.
   bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }
@@ -182,6 +189,36 @@ struct WeightTable {
 };
 const WeightTable kWeights;  // immutable after static initialisation
 
+// The extraordinary rule of each stored ring's vertex for each of its edges,
+// summed as PointSum sums it (3/4 v first, then the ring in order, zero
+// weights skipped), so a rule read from here has the walk's bits.
+void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads) {
+  rings.point.resize(3 * rings.neighbour.size());
+  const float* pos = mesh.positions.data();
+  parallel_for(int64_t(rings.offset.size()), threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t off = rings.offset[v];
+      if (off < 0) continue;
+      const int K = vclass.valence[v];
+      const double* w = K < kMaxTabulated ? kWeights.w[K] : nullptr;
+      const int32_t* nb = rings.neighbour.data() + off;
+      const float* x = pos + 3 * size_t(v);
+      for (int i = 0; i < K; ++i) {
+        double p[3] = {0, 0, 0};
+        for (int k = 0; k < 3; ++k) p[k] += 0.75 * double(x[k]);
+        for (int j = 0, r = i; j < K; ++j, r = r + 1 == K ? 0 : r + 1) {
+          const double s = w ? w[j] : formula_weight(K, j);
+          if (s == 0.0) continue;
+          const float* y = pos + 3 * size_t(nb[r]);
+          for (int k = 0; k < 3; ++k) p[k] += s * double(y[k]);
+        }
+        double* out = rings.point.data() + 3 * (size_t(off) + size_t(i));
+        for (int k = 0; k < 3; ++k) out[k] = p[k];
+      }
+    }
+  }, 256);
+}
+
 // Where corner x0 sits in a stored ring of K corners (K if absent). Rings
 // are padded with kRingPad entries that match no corner, so up to 8 are
 // compared at once without a branch per entry (the entry at which a loop
@@ -206,7 +243,7 @@ ITEAS_INLINE int ring_position(const int32_t* rc, int K, int32_t x0) {
 // Extraordinary rule at vertex v (corner x0 at v, whose next vertex is the
 // other endpoint of the edge): 3/4 v + sum_j s_j e_j over the ring in order.
 template <bool G, typename Sink>
-void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
+void extraordinary_terms(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
   const int K = valence;
   const int32_t v = m.cv[x0];
   out(v, 0.75 * scale);
@@ -223,15 +260,7 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
           if (s != 0.0) sink(nb[i], s * scale);
         }
       };
-      if constexpr (std::is_same_v<Sink, PointSum>) {
-        // Summed in registers (the caller's sink lives in memory): the same
-        // terms in the same order, so the same bits.
-        PointSum sum = out;
-        ring(sum);
-        out = sum;
-      } else {
-        ring(out);
-      }
+      ring(out);
       return;
     }
   }
@@ -243,6 +272,30 @@ void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, 
     const double s = w ? w[j] : formula_weight(K, j);
     if (s != 0.0) out(m.cv[next_corner(x)], s * scale);
     x = m.ct->swing_right(x);
+  }
+}
+
+// A point sums each rule on its own, then adds it scaled (1, or 1/2 for each
+// of two irregular ends): the rule is then one sum per vertex and edge,
+// precomputed with the ring table (ring_points) and read here.
+template <bool G, typename Sink>
+ITEAS_INLINE void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
+  if constexpr (std::is_same_v<Sink, PointSum>) {
+    const int32_t v = m.cv[x0];
+    if (!G && v < m.ring_limit && m.ring_offset[v] >= 0) {
+      const int32_t off = m.ring_offset[v];
+      const int i = ring_position(m.ring_corner + off, valence, x0);
+      if (i < valence) {
+        const double* r = m.ring_point + 3 * (size_t(off) + size_t(i));
+        for (int k = 0; k < 3; ++k) out.p[k] += scale * r[k];
+        return;
+      }
+    }
+    PointSum rule{out.positions};
+    extraordinary_terms(m, x0, valence, 1.0, rule);
+    for (int k = 0; k < 3; ++k) out.p[k] += scale * rule.p[k];
+  } else {
+    extraordinary_terms(m, x0, valence, scale, out);
   }
 }
 
