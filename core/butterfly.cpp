@@ -120,7 +120,7 @@ struct View {
   const int32_t* ring_offset;
   const int32_t* ring_corner;
   const int32_t* ring_neighbour;
-  const double* ring_point;
+  const float* ring_point;
   explicit View(const ButterflyContext& ctx)
       : ct(ctx.ct),
         cv(ctx.mesh->corner_vertex.data()),
@@ -212,8 +212,8 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
           const float* y = pos + 3 * size_t(nb[r]);
           for (int k = 0; k < 3; ++k) p[k] += s * double(y[k]);
         }
-        double* out = rings.point.data() + 3 * (size_t(off) + size_t(i));
-        for (int k = 0; k < 3; ++k) out[k] = p[k];
+        float* out = rings.point.data() + 3 * (size_t(off) + size_t(i));
+        for (int k = 0; k < 3; ++k) out[k] = float(p[k]);
       }
     }
   }, 256);
@@ -275,9 +275,24 @@ void extraordinary_terms(const View<G>& m, int32_t x0, int32_t valence, double s
   }
 }
 
-// A point sums each rule on its own, then adds it scaled (1, or 1/2 for each
-// of two irregular ends): the rule is then one sum per vertex and edge,
-// precomputed with the ring table (ring_points) and read here.
+// x rounded to float. The empty asm makes the compiler keep the rounding: at
+// -O3, GCC 12's SLP vectoriser dropped a plain double(float(x)) round trip
+// here (the walk then disagreed with the ring table's stored floats).
+ITEAS_INLINE float to_float(double x) {
+  float f = float(x);
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+  asm("" : "+x"(f));
+#elif defined(__GNUC__)
+  asm("" : "+r"(f));
+#endif
+  return f;
+}
+
+// A point sums each rule on its own, rounds it to float (as the point itself
+// would be: an edge with one irregular end gets the same bits as a single
+// sum) and adds it scaled (1, or 1/2 for each of two irregular ends): the
+// rule is then one value per vertex and edge, precomputed with the ring table
+// (ring_points, 12 bytes an entry) and read here.
 template <bool G, typename Sink>
 ITEAS_INLINE void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
   if constexpr (std::is_same_v<Sink, PointSum>) {
@@ -286,14 +301,14 @@ ITEAS_INLINE void extraordinary(const View<G>& m, int32_t x0, int32_t valence, d
       const int32_t off = m.ring_offset[v];
       const int i = ring_position(m.ring_corner + off, valence, x0);
       if (i < valence) {
-        const double* r = m.ring_point + 3 * (size_t(off) + size_t(i));
-        for (int k = 0; k < 3; ++k) out.p[k] += scale * r[k];
+        const float* r = m.ring_point + 3 * (size_t(off) + size_t(i));
+        for (int k = 0; k < 3; ++k) out.p[k] += scale * double(r[k]);
         return;
       }
     }
     PointSum rule{out.positions};
     extraordinary_terms(m, x0, valence, 1.0, rule);
-    for (int k = 0; k < 3; ++k) out.p[k] += scale * rule.p[k];
+    for (int k = 0; k < 3; ++k) out.p[k] += scale * double(to_float(rule.p[k]));
   } else {
     extraordinary_terms(m, x0, valence, scale, out);
   }

@@ -34,9 +34,9 @@ constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width s
 struct RingTable {
   std::vector<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
   std::vector<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
-  // Per ring entry, the extraordinary rule's point (3 doubles) for the edge
+  // Per ring entry, the extraordinary rule's point (3 floats) for the edge
   // from the vertex to that neighbour, from the positions build_rings saw.
-  std::vector<double> point;
+  Array<float> point;  // no zero fill (every entry is written)
 };
 
 struct ButterflyContext {
@@ -89,8 +89,8 @@ void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<Stenc
 // The same rule applied to |positions| (3 floats per vertex) without building
 // the term list. Equal to the sum of butterfly_stencil's terms up to rounding
 // (the regular case sums by weight class; an extraordinary rule is summed on
-// its own, then scaled in, and read from the ring table's points where it has
-// them); every refinement path computes positions with it, so the paths agree
+// its own, rounded to float, then scaled in, and read from the ring table's
+// points where it has them); every refinement path computes positions with it, so the paths agree
 // bit for bit.
 void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positions, float out[3]);
 // butterfly_point for |count| edges at once: out[3 i .. 3 i + 2] for corners[i].
