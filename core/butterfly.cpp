@@ -254,13 +254,10 @@ void extraordinary_terms(const View<G>& m, int32_t x0, int32_t valence, double s
     const int32_t* nb = m.ring_neighbour + m.ring_offset[v];
     const int i0 = ring_position(rc, K, x0);
     if (i0 < K) {
-      auto ring = [&](auto& sink) {
-        for (int j = 0, i = i0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
-          const double s = w ? w[j] : formula_weight(K, j);
-          if (s != 0.0) sink(nb[i], s * scale);
-        }
-      };
-      ring(out);
+      for (int j = 0, i = i0; j < K; ++j, i = i + 1 == K ? 0 : i + 1) {
+        const double s = w ? w[j] : formula_weight(K, j);
+        if (s != 0.0) out(nb[i], s * scale);
+      }
       return;
     }
   }
