@@ -3,22 +3,21 @@
 #include <algorithm>
 #include <cmath>
 #include <type_traits>
-#if defined(__SSE2__)
-#include <emmintrin.h>
-#endif
 
 #include "core/parallel.h"
 
 namespace iteas {
 
-void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+bool mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
                       std::vector<uint8_t>& sharp, int threads) {
+  const bool creases = crease_angle > 0 && theta;
   const int32_t nc = ct.num_corners();
   sharp.resize(nc);
   parallel_for(nc, threads, [&](int64_t b, int64_t e) {
     for (int64_t c = b; c < e; ++c)
-      sharp[c] = ct.opposite(int32_t(c)) < 0 || (crease_angle > 0 && theta && (*theta)[c] >= crease_angle);
+      sharp[c] = ct.opposite(int32_t(c)) < 0 || (creases && (*theta)[c] >= crease_angle);
   });
+  return !creases;
 }
 
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
@@ -221,20 +220,12 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
 
 // Where corner x0 sits in a stored ring of K corners (K if absent). Rings
 // are padded with kRingPad entries that match no corner, so up to 8 are
-// compared at once without a branch per entry (the entry at which a loop
-// would stop varies from edge to edge and was mispredicted).
+// compared at once.
 ITEAS_INLINE int ring_position(const int32_t* rc, int K, int32_t x0) {
-#if defined(__SSE2__)
   if (K <= 8) {
-    const __m128i x = _mm_set1_epi32(x0);
-    const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rc));
-    const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(rc + 4));
-    const unsigned mask = (unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(lo, x)))) |
-                           unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(hi, x)))) << 4) &
-                          ((1u << K) - 1);
+    const unsigned mask = equal_mask8(rc, x0, K);
     return mask ? __builtin_ctz(mask) : K;
   }
-#endif
   int i = 0;
   while (i < K && rc[i] != x0) ++i;
   return i;
@@ -280,7 +271,7 @@ ITEAS_INLINE float to_float(double x) {
 #if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
   asm("" : "+x"(f));
 #elif defined(__GNUC__)
-  asm("" : "+r"(f));
+  asm("" : "+m"(f));
 #endif
   return f;
 }

@@ -59,8 +59,10 @@ struct ButterflyContext {
 // Removes the bisecting edges of green pairs from the apex valences.
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass);
 
-// Marks boundary edges and, when crease_angle > 0, edges with theta >= it.
-void mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+// Marks boundary edges and, when crease_angle > 0 and theta is given, edges
+// with theta >= it. Returns true when only boundary edges can be marked (no
+// crease was asked for): what classify_vertices' |sharp_is_boundary| wants.
+bool mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
                       std::vector<uint8_t>& sharp, int threads = 1);
 
 // |sharp_is_boundary|: the sharp flags mark boundary edges only (no crease);
@@ -90,8 +92,8 @@ void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<Stenc
 // the term list. Equal to the sum of butterfly_stencil's terms up to rounding
 // (the regular case sums by weight class; an extraordinary rule is summed on
 // its own, rounded to float, then scaled in, and read from the ring table's
-// points where it has them); every refinement path computes positions with it, so the paths agree
-// bit for bit.
+// points where it has them); every refinement path computes positions with
+// it, so the paths agree bit for bit.
 void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positions, float out[3]);
 // butterfly_point for |count| edges at once: out[3 i .. 3 i + 2] for corners[i].
 void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,

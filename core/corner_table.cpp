@@ -3,10 +3,6 @@
 #include <algorithm>
 #include <unordered_map>
 
-#if defined(__SSE2__)
-#include <emmintrin.h>
-#endif
-
 #include "core/parallel.h"
 
 namespace iteas {
@@ -61,28 +57,16 @@ constexpr BitCounts kBits;
 
 // In a's run [rb, re): how many entries have prev b (edges b -> a, |reverse|;
 // |match| the corner of the last) and how many have next b (edges a -> b,
-// |same|). Runs of up to 8 (nearly every vertex) are compared 8 at a time:
-// the scalar loop's branches on the vertex ids were mispredicted.
+// |same|). Runs of up to 8 (nearly every vertex) are compared 8 at a time.
 inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t b, int32_t& reverse, int32_t& same,
                         int32_t& match) {
-#if defined(__SSE2__)
-  const int32_t n = re - rb;
-  if (n <= 8) {
-    const __m128i x = _mm_set1_epi32(b);
-    auto mask8 = [&](const int32_t* p) {
-      const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p));
-      const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + 4));
-      return (unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(lo, x)))) |
-              unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(hi, x)))) << 4) &
-             ((1u << n) - 1);
-    };
-    const unsigned r = mask8(vc.prevs.data() + rb), s = mask8(vc.nexts.data() + rb);
+  if (re - rb <= 8) {
+    const unsigned r = equal_mask8(vc.prevs.data() + rb, b, re - rb), s = equal_mask8(vc.nexts.data() + rb, b, re - rb);
     reverse = kBits[r];
     same = kBits[s];
     match = r ? vc.corners[rb + 31 - __builtin_clz(r)] : -1;
     return;
   }
-#endif
   for (int32_t j = rb; j < re; ++j) {
     if (vc.prevs[j] == b) { ++reverse; match = vc.corners[j]; }
     same += vc.nexts[j] == b;

@@ -10,12 +10,35 @@
 #include <cstdint>
 #include <vector>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 #include "core/mesh.h"
 
 namespace iteas {
 
 inline int32_t next_corner(int32_t c) { return (c % 3 == 2) ? c - 2 : c + 1; }
 inline int32_t prev_corner(int32_t c) { return (c % 3 == 0) ? c + 2 : c - 1; }
+
+// Bit i set when p[i] == x, for i < n <= 8. Reads 8 entries whatever n is (the
+// caller pads its arrays): one SSE2 compare instead of a branch per entry,
+// whose outcome varies from call to call and was mispredicted.
+inline unsigned equal_mask8(const int32_t* p, int32_t x, int n) {
+  const unsigned keep = (1u << n) - 1;
+#if defined(__SSE2__)
+  const __m128i v = _mm_set1_epi32(x);
+  const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p));
+  const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + 4));
+  return (unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(lo, v)))) |
+          unsigned(_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(hi, v)))) << 4) &
+         keep;
+#else
+  unsigned m = 0;
+  for (int i = 0; i < 8; ++i) m |= unsigned(p[i] == x) << i;
+  return m & keep;
+#endif
+}
 
 struct TopologyReport {
   int64_t boundary_edges = 0;         // edges with one face after cutting

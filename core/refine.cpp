@@ -107,9 +107,9 @@ struct State {
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
-                    vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) + vbytes(s.bctx.vclass.valence) +
-                    vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) + vbytes(s.rings.corner) +
-                    vbytes(s.rings.neighbour) + vbytes(s.rings.point) + extra;
+                    vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) +
+                    vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) +
+                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) + extra;
   s.peak = std::max(s.peak, b);
 }
 
@@ -147,9 +147,9 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   else std::vector<float>().swap(s.theta);
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
-  mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
-  const bool creases = o.crease_angle > 0 && need_theta;  // as mark_sharp_edges decides
-  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads, !creases);
+  const bool boundary_only =
+      mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
+  classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads, boundary_only);
   if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
 }
 
