@@ -56,19 +56,20 @@ struct BitCounts {
 constexpr BitCounts kBits;
 
 // In a's run [rb, re): how many entries have prev b (edges b -> a, |reverse|;
-// |match| the corner of the last) and how many have next b (edges a -> b,
-// |same|). Runs of up to 8 (nearly every vertex) are compared 8 at a time.
+// |match| the index in the run arrays of the last) and how many have next b
+// (edges a -> b, |same|). Runs of up to 8 (nearly every vertex) are compared
+// 8 at a time.
 inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t b, int32_t& reverse, int32_t& same,
                         int32_t& match) {
   if (re - rb <= 8) {
     const unsigned r = equal_mask8(vc.prevs.data() + rb, b, re - rb), s = equal_mask8(vc.nexts.data() + rb, b, re - rb);
     reverse = kBits[r];
     same = kBits[s];
-    match = r ? vc.corners[rb + 31 - __builtin_clz(r)] : -1;
+    match = r ? rb + 31 - __builtin_clz(r) : -1;
     return;
   }
   for (int32_t j = rb; j < re; ++j) {
-    if (vc.prevs[j] == b) { ++reverse; match = vc.corners[j]; }
+    if (vc.prevs[j] == b) { ++reverse; match = j; }
     same += vc.nexts[j] == b;
   }
 }
@@ -91,22 +92,68 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   // each corner is written by exactly one vertex (that of next(c)). With
   // several matches the last in corner order is kept, as in the corner-order
   // pass this replaced (the results are the same).
+  // The same matching links the vertex's corners into its fans: the entry
+  // whose incoming edge b -> a is matched is followed, turning right round a,
+  // by the entry whose outgoing edge is a -> b (right/left below, indices into
+  // the run). Each vertex's fan is then walked on its own run, in cache,
+  // instead of chasing opposites written by other vertices.
+  // A vertex's corner is the start of the fan holding its first corner: for a
+  // vertex with only closed fans (no corner lacks a left neighbour) the corner
+  // right of the first one, else the end of the walk left from it. The fan
+  // from there is walked once: its size tells a non-manifold vertex (left, when
+  // splitting, to the pass below, in order) and is recorded for classifying
+  // vertices.
+  const int32_t nv = mesh.num_vertices();
   std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
-  parallel_for(mesh.num_vertices(), threads, [&](int64_t begin, int64_t end) {
+  std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
+  vertex_corner_.assign(nv, -1);
+  fan_.assign(nv, 0);
+  parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
+    constexpr int32_t kLocal = 64;
+    int32_t local[2 * kLocal];
+    std::vector<int32_t> large;  // runs longer than kLocal
     for (int64_t a = begin; a < end; ++a) {
-      const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
-      for (int32_t i = rb; i < re; ++i) {
-        const int32_t b = vc.nexts[i], c = prev_corner(vc.corners[i]);
+      const int32_t rb = vc.offset[a], re = vc.offset[a + 1], n = re - rb;
+      if (n == 0) continue;
+      if (n > kLocal) large.resize(2 * size_t(n));
+      int32_t* right = n > kLocal ? large.data() : local;
+      int32_t* left = right + n;
+      for (int32_t i = 0; i < n; ++i) right[i] = -1;
+      bool open = false;
+      for (int32_t i = 0; i < n; ++i) {
+        const int32_t b = vc.nexts[rb + i], c = prev_corner(vc.corners[rb + i]);
         int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
         count_edges(vc, rb, re, b, reverse, same, match);
         if (reverse == 1 && same == 1) {
-          opposite_[c] = next_corner(match);
+          opposite_[c] = next_corner(vc.corners[match]);
+          left[i] = match - rb;
+          right[match - rb] = i;
           continue;
         }
         opposite_[c] = -1;
+        left[i] = -1;
+        open = true;
         if (reverse + same >= 3) cut_kind[c] = 1;
         else if (same == 2) cut_kind[c] = 2;
       }
+      // Left links are one-to-one, so the walk left meets the start again or ends.
+      int32_t first = 0;
+      if (!open) first = right[0] >= 0 ? right[0] : 0;
+      else
+        for (int32_t x = left[0]; x >= 0 && x != 0; x = left[x]) first = x;
+      int32_t faces = 0;
+      bool closed = false;
+      for (int32_t x = first;;) {
+        ++faces;
+        const int32_t s = right[x];
+        if (s < 0) break;
+        if (s == first) { closed = true; break; }
+        if (faces > n) break;
+        x = s;
+      }
+      if (split_vertices && faces != n) { several[a] = 1; continue; }
+      vertex_corner_[a] = vc.corners[rb + first];
+      fan_[a] = faces > n ? kUnknownFan : (closed ? faces : -faces);
     }
   }, kVertexGrain);
   // Each undirected edge counted once: by its smallest corner.
@@ -125,47 +172,6 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       ++report.boundary_edges;
     }
   }
-
-  const int32_t nv = mesh.num_vertices();
-  vertex_corner_.assign(nv, -1);
-  // A vertex's corner is the start of the fan holding its first corner (what
-  // the walk below sets). A vertex none of whose corners has a left
-  // neighbour missing has only closed fans: the walk would end right of the
-  // first corner, so no pointer-chasing walk is needed for it (every interior
-  // vertex). Others walk left. In parallel. When splitting, a vertex whose
-  // first fan does not hold all its corners (a non-manifold vertex) is left to
-  // the walk below, in order.
-  // The fan from there is then walked once (its size tells a non-manifold
-  // vertex, and is recorded for classifying vertices).
-  std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
-  fan_.assign(nv, 0);
-  parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
-    for (int64_t v = begin; v < end; ++v) {
-      const int32_t b = vc.offset[v], e = vc.offset[v + 1];
-      if (b == e) continue;
-      const int32_t start = vc.corners[b];
-      bool open = false;
-      for (int32_t i = b; i < e && !open; ++i) open = swing_left(vc.corners[i]) < 0;
-      int32_t first = start;
-      if (!open) first = swing_right(start);
-      else
-        for (int32_t c = swing_left(start); c >= 0 && c != start; c = swing_left(c)) first = c;
-      // A fan holds at most the vertex's e - b corners; a longer walk is malformed.
-      int32_t faces = 0;
-      bool closed = false;
-      for (int32_t c = first;;) {
-        ++faces;
-        const int32_t s = swing_right(c);
-        if (s < 0) break;
-        if (s == first) { closed = true; break; }
-        if (faces > e - b) break;
-        c = s;
-      }
-      if (split_vertices && faces != e - b) { several[v] = 1; continue; }
-      vertex_corner_[v] = first;
-      fan_[v] = faces > e - b ? kUnknownFan : (closed ? faces : -faces);
-    }
-  }, kVertexGrain);
   if (!split_vertices) return report;
   // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   std::vector<uint8_t> visited(nc, 0);

@@ -48,6 +48,8 @@ TEST(CornerTable, InvariantsOnEveryMesh) {
         int32_t n = 0, c = first;
         do { ++n; c = ct.swing_right(c); } while (c >= 0 && c != first && n <= count[v]);
         ASSERT_EQ(n, count[v]) << "vertex " << v;
+        // The fan the table recorded while matching is the one walked here.
+        ASSERT_EQ(ct.fans()[v], c == first ? n : -n) << "vertex " << v;
       }
       ++checked;
     }
