@@ -64,6 +64,19 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
 
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads) {
+  const int32_t* cv = mesh.corner_vertex.data();
+  if (out.carried) {
+    out.carried = false;
+    out.neighbour.resize(out.corner.size() - kRingPad);
+    parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) {
+        const int32_t x = out.corner[i];
+        out.neighbour[i] = x >= 0 ? cv[next_corner(x)] : -1;
+      }
+    });
+    ring_points(mesh, vclass, out, threads);
+    return;
+  }
   limit = std::min(limit, mesh.num_vertices());
   out.offset.assign(size_t(std::max(limit, 0)), -1);
   int64_t total = 0;
@@ -75,12 +88,19 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   }
   out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
-  const int32_t* cv = mesh.corner_vertex.data();
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = out.offset[v];
       if (off < 0) continue;
       const int32_t k = vclass.valence[v];
+      const int32_t* order = ct.fan_order(int32_t(v));
+      if (order && ct.fans()[v] == k) {  // the closed fan of k faces the walk would take
+        for (int32_t j = 0; j < k; ++j) {
+          out.corner[off + j] = order[j];
+          out.neighbour[off + j] = cv[next_corner(order[j])];
+        }
+        continue;
+      }
       int32_t x = ct.vertex_corner(int32_t(v));
       for (int32_t j = 0; j < k; ++j) {
         if (x < 0) { out.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
@@ -91,6 +111,19 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     }
   }, 512);
   ring_points(mesh, vclass, out, threads);
+}
+
+void carry_rings(RingTable& rings) {
+  // Vertex v's corner k of face f becomes corner k of child k; round v the
+  // children follow one another as their parents did.
+  const int64_t n = int64_t(rings.corner.size()) - kRingPad;
+  for (int64_t i = 0; i < n; ++i) {
+    const int32_t x = rings.corner[i];
+    if (x >= 0) rings.corner[i] = 3 * (4 * (x / 3) + x % 3) + x % 3;
+  }
+  std::vector<int32_t>().swap(rings.neighbour);
+  Array<float>().swap(rings.point);
+  rings.carried = true;
 }
 
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {

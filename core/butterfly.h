@@ -34,6 +34,9 @@ constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width s
 struct RingTable {
   std::vector<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
   std::vector<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
+  // Set by carry_rings: offset and corner hold the rings of the next uniform
+  // level (same vertices, same order); build_rings then only fills in the rest.
+  bool carried = false;
   // Per ring entry, the extraordinary rule's point (3 floats) for the edge
   // from the vertex to that neighbour, from the positions build_rings saw.
   Array<float> point;  // no zero fill (every entry is written)
@@ -70,9 +73,17 @@ bool mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, do
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
                        VertexClass& out, int threads = 1, bool sharp_is_boundary = false);
 
-// Rings of the extraordinary vertices below |limit| on the current level.
+// Rings of the extraordinary vertices below |limit| on the current level:
+// carried over from the level before (|out|.carried), else read from the fans
+// the corner table recorded (CornerTable::fan_order), else walked.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads = 1);
+
+// After a uniform split of this level (children of face f are 4f..4f+3, child
+// k keeping corner k): keeps only the rings' corners, moved to the children,
+// for build_rings on the next level. Valid only while the vertex classes are
+// carried over too (uniform levels without creases).
+void carry_rings(RingTable& rings);
 
 // The stencil of the new vertex on the edge opposite corner c. Rules:
 //  * sharp edge (boundary or crease): 4-point curve rule -1/16, 9/16, 9/16, -1/16

@@ -76,7 +76,7 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
 
 }  // namespace
 
-TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) {
+TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order) {
   TopologyReport report;
   const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
@@ -108,6 +108,13 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
   std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
   vertex_corner_.assign(nv, -1);
   fan_.assign(nv, 0);
+  std::vector<int32_t>().swap(fan_offset_);
+  Array<int32_t>().swap(fan_corner_);
+  if (record_order) {
+    fan_offset_ = vc.offset;
+    fan_corner_.resize(nc);
+  }
+  int32_t* order = record_order ? fan_corner_.data() : nullptr;
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     constexpr int32_t kLocal = 64;
     int32_t local[2 * kLocal];
@@ -144,6 +151,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads) 
       int32_t faces = 0;
       bool closed = false;
       for (int32_t x = first;;) {
+        if (order && faces < n) order[rb + faces] = vc.corners[rb + x];
         ++faces;
         const int32_t s = right[x];
         if (s < 0) break;

@@ -51,7 +51,8 @@ class CornerTable {
  public:
   // Builds opposites for |mesh|. Splits non-manifold vertices in |mesh| (adding
   // vertices with the same position, wedges follow) when |split_vertices|.
-  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1);
+  // |record_order|: also keep each vertex's fan in walk order (fan_order()).
+  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false);
 
   int32_t opposite(int32_t c) const { return opposite_[c]; }
   // For a boundary vertex: the corner whose fan walk by swing_right() covers
@@ -77,7 +78,19 @@ class CornerTable {
   // table is changed by other means (forget_fans()).
   static constexpr int32_t kUnknownFan = INT32_MIN;
   const std::vector<int32_t>& fans() const { return fan_; }
-  void forget_fans() { std::vector<int32_t>().swap(fan_); }
+  // With |record_order|: the corners of the recorded fan of vertex v (below
+  // the vertex count build() started with), from vertex_corner(v) turning
+  // right, |fans()[v]| or |-fans()[v]| of them; null when not recorded.
+  const int32_t* fan_order(int32_t v) const {
+    if (size_t(v) + 1 >= fan_offset_.size() || fan_[v] == 0 || fan_[v] == kUnknownFan) return nullptr;
+    const int32_t* order = fan_corner_.data() + fan_offset_[v];
+    return order[0] == vertex_corner_[v] ? order : nullptr;
+  }
+  void forget_fans() {
+    std::vector<int32_t>().swap(fan_);
+    std::vector<int32_t>().swap(fan_offset_);
+    Array<int32_t>().swap(fan_corner_);
+  }
 
   Array<int32_t>& opposites() { return opposite_; }
   const Array<int32_t>& opposites() const { return opposite_; }
@@ -87,6 +100,8 @@ class CornerTable {
   Array<int32_t> opposite_;
   std::vector<int32_t> vertex_corner_;
   std::vector<int32_t> fan_;
+  std::vector<int32_t> fan_offset_;  // record_order: per vertex + 1, into fan_corner_
+  Array<int32_t> fan_corner_;        // record_order: the fans' corners in walk order
 };
 
 }  // namespace iteas

@@ -162,13 +162,12 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
 // local corner k of child k+1 (k+2). Without |connectivity| (the last level,
 // no statistics to follow) the children's corner table and vertex classes are
 // not made: nothing would read them.
-void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity) {
+void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity, bool more_levels) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const int32_t* opp = s.ct.opposites().data();
   auto canonical = [opp](int64_t c) { return opp[c] < 0 || c < opp[c]; };
   derive_classes = derive_classes && s.green.empty() && connectivity;
-  s.ct.forget_fans();  // the arithmetic below changes the table
 
   // Topology pass 1: number edges (canonical corners) in corner order.
   const int64_t chunks = (nc + kChunk - 1) / kChunk;
@@ -206,6 +205,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads);
     s.bctx.rings = &s.rings;
   }
+  s.ct.forget_fans();  // the arithmetic below changes the table
   if (derive_classes) {
     vclass.valence.resize(size_t(nv) + ne);
     vclass.complete.resize(size_t(nv) + ne);
@@ -256,10 +256,12 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   });
 
   // The level's connectivity is about to change; the rings go before the
-  // children's arrays come (peak memory).
+  // children's arrays come (peak memory), but for their corners when the next
+  // level will want them (the larger next level sets the peak then).
   s.bctx.rings = nullptr;
   note_peak(s, m, vbytes(evert) + vbytes(ewedge));
-  s.rings = RingTable();
+  if (derive_classes && more_levels && !s.rings.offset.empty()) carry_rings(s.rings);
+  else s.rings = RingTable();
 
   // Topology pass 2: children. Then the new vertices' fan corners, while the
   // old opposites still tell canonical corners; then the old connectivity and
@@ -953,7 +955,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   const double t0 = now();
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();
-  stats.topology = s.ct.build(m, true, s.threads);
+  // The uniform path reads its first rings from the fans the table records.
+  stats.topology = s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path);
   s.ring_limit = m.num_vertices();
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
@@ -1005,7 +1008,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path) {
-        uniform_level(s, m, ls, crease <= 0, level < o.levels || statistics);
+        uniform_level(s, m, ls, crease <= 0, level < o.levels || statistics, level < o.levels);
       } else {
         selected.resize(m.num_faces());
         std::iota(selected.begin(), selected.end(), 0);

@@ -283,6 +283,56 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
   EXPECT_GT(ringed, 1000);  // the tables were used, not just empty
 }
 
+// The uniform path does not walk for its rings: on the input it copies the
+// fans the corner table recorded, on later levels it carries the rings over
+// from the level before. Both must give the walk's table, bit for bit.
+TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
+  auto rings_of = [](const Mesh& m, const CornerTable& ct, int32_t limit, RingTable& rings) {
+    std::vector<uint8_t> sharp;
+    VertexClass vclass;
+    const bool boundary_only = mark_sharp_edges(ct, nullptr, 0, sharp, 1);
+    classify_vertices(m, ct, sharp, vclass, 2, boundary_only);
+    build_rings(m, ct, vclass, limit, rings, 2);
+  };
+  auto same = [](const RingTable& a, const RingTable& b) {
+    return a.offset == b.offset && a.corner == b.corner && a.neighbour == b.neighbour &&
+           a.point.size() == b.point.size() &&
+           std::memcmp(a.point.data(), b.point.data(), a.point.size() * sizeof(float)) == 0;
+  };
+  int64_t recorded_rings = 0, carried_rings = 0;
+  for (const Case& c : cases(8000)) {
+    // Two tables of the input as refinement builds it (fans split), one
+    // recording its fans: build_rings reads those, and walks the other.
+    Mesh m = c.mesh, copy = c.mesh;
+    CornerTable recorded, walked;
+    const TopologyReport rep = recorded.build(m, true, 2, true);
+    walked.build(copy, true, 1);
+    ASSERT_EQ(walked.fan_order(0), nullptr);
+    RingTable from_fans, from_walk;
+    rings_of(m, recorded, m.num_vertices(), from_fans);
+    rings_of(m, walked, m.num_vertices(), from_walk);
+    EXPECT_TRUE(same(from_fans, from_walk)) << c.name;
+    for (int32_t v = 0; v < m.num_vertices(); ++v) recorded_rings += from_fans.offset[v] >= 0 && recorded.fan_order(v);
+
+    // One uniform level later, against a table built afresh on the refined
+    // mesh. (Where the input had cut edges, the fresh table may join what the
+    // level's own table, derived from the input's, keeps cut: not comparable.)
+    if (rep.non_manifold_edges + rep.orientation_conflicts + rep.split_vertices > 0) continue;
+    const Mesh next = refined(m, opts(Mode::kUniform, 1));
+    Mesh next_copy = next;
+    CornerTable next_ct;
+    next_ct.build(next_copy, false, 1);
+    RingTable carried = from_fans, next_walk;
+    carry_rings(carried);
+    rings_of(next, next_ct, m.num_vertices(), carried);
+    rings_of(next, next_ct, m.num_vertices(), next_walk);
+    EXPECT_TRUE(same(carried, next_walk)) << c.name;
+    for (int32_t off : next_walk.offset) carried_rings += off >= 0;
+  }
+  EXPECT_GT(recorded_rings, 1000);  // the recorded fans were used, not walked around
+  EXPECT_GT(carried_rings, 1000);
+}
+
 TEST(Refine, BudgetIsNeverExceeded) {
   for (const Case& c : cases(10000)) {
     SCOPED_TRACE(c.name);
@@ -320,7 +370,9 @@ TEST(Refine, IteasConvergesOrStopsWithAReason) {
       for (const LevelStats& ls : st.levels) {
         stalled += ls.faces_stalled;
         tolerant += ls.faces_within_tolerance + ls.faces_over_flat_limit;
-        if (variant >= 1) EXPECT_EQ(ls.faces_within_tolerance + ls.faces_over_flat_limit, 0) << c.name;
+        if (variant >= 1) {
+          EXPECT_EQ(ls.faces_within_tolerance + ls.faces_over_flat_limit, 0) << c.name;
+        }
       }
       stalled_meshes += stalled > 0 || st.stopped_by == "stalled";
       tolerant_meshes += tolerant > 0;
