@@ -12,12 +12,13 @@ namespace iteas {
 
 void prepare_pages(void* p, size_t bytes) {
 #if defined(__linux__)
-  constexpr uintptr_t kPage = 4096, kHuge = uintptr_t(2) << 20;
+  constexpr uintptr_t kPage = 4096, kHuge = kHugePageBytes;
   if (bytes < kPrefaultBytes) return;
   const uintptr_t lo = reinterpret_cast<uintptr_t>(p), hi = lo + bytes;
 #if defined(MADV_HUGEPAGE)
-  // The 2 MB-aligned interior of the block; advice only, errors ignored.
-  if (bytes >= 2 * kHuge) {
+  // The whole 2 MB stretches of the block (which starts on a 2 MB boundary
+  // when it is that large); advice only, errors ignored.
+  if (bytes >= kHuge) {
     const uintptr_t b = (lo + kHuge - 1) & ~(kHuge - 1), e = hi & ~(kHuge - 1);
     if (e > b) madvise(reinterpret_cast<void*>(b), e - b, MADV_HUGEPAGE);
   }

@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <new>
 #include <string>
 #include <utility>
 #include <vector>
@@ -18,11 +19,17 @@ namespace iteas {
 // Anything that needs zeros says so: assign(n, 0) or resize(n, 0).
 // Large arrays are made ready before they are written: their pages are
 // faulted in with one system call (MADV_POPULATE_WRITE) rather than one trap
-// per 4 KB page, and those of 4 MB or more are offered to transparent huge
+// per 4 KB page, and those of 2 MB or more are offered to transparent huge
 // pages (where the system allows it on request). Refinement writes tens of MB
 // of fresh memory per level, and page faults were most of its kernel time:
 // about 10 us each on a virtual machine, against 0.75 us per page populated.
+// Those arrays start on a 2 MB boundary, so that every whole 2 MB stretch of
+// them can be a huge page (not only the aligned middle of an arbitrary
+// block): on this kind of virtual machine a huge page is populated 3x faster
+// than the 512 small pages it replaces, unmapped 17x faster, and written 10x
+// faster afterwards (one TLB entry instead of 512).
 constexpr size_t kPrefaultBytes = 64 * 1024;
+constexpr size_t kHugePageBytes = size_t(2) << 20;
 void prepare_pages(void* p, size_t bytes);
 
 template <typename T>
@@ -34,9 +41,16 @@ struct NoInitAllocator : std::allocator<T> {
   template <typename U>
   struct rebind { using other = NoInitAllocator<U>; };
   T* allocate(size_t n) {
-    T* p = std::allocator<T>::allocate(n);
-    prepare_pages(p, n * sizeof(T));
+    // (n * sizeof(T) does not overflow: containers ask for at most max_size().)
+    const size_t bytes = n * sizeof(T);
+    T* p = bytes >= kHugePageBytes ? static_cast<T*>(::operator new(bytes, std::align_val_t(kHugePageBytes)))
+                                   : std::allocator<T>::allocate(n);
+    prepare_pages(p, bytes);
     return p;
+  }
+  void deallocate(T* p, size_t n) noexcept {
+    if (n * sizeof(T) >= kHugePageBytes) ::operator delete(p, std::align_val_t(kHugePageBytes));
+    else std::allocator<T>::deallocate(p, n);
   }
   template <typename U>
   void construct(U* p) noexcept { ::new (static_cast<void*>(p)) U; }

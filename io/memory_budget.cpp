@@ -2,10 +2,13 @@
 
 #include <malloc.h>
 
+#include <algorithm>
 #include <cstddef>
 #include <atomic>
 #include <cstdlib>
 #include <limits>
+#include <mutex>
+#include <unordered_map>
 
 namespace iteas {
 namespace {
@@ -15,6 +18,21 @@ thread_local int64_t t_net = 0;  // bytes this thread allocated minus what it fr
 thread_local int64_t t_cap = std::numeric_limits<int64_t>::max();  // t_net may not pass this
 thread_local bool t_exceeded = false;
 
+// Over-aligned blocks are counted at their requested size, rounded up to a
+// page, when glibc reports more: a large one (the 2 MB-aligned arrays of
+// refinement) comes from a mapping with up to |align| bytes of slack before
+// and after it, address space that is never touched, which
+// malloc_usable_size counts as usable. What each was charged is kept here
+// (there are few) so that freeing subtracts exactly that.
+std::mutex& aligned_mutex() {
+  static std::mutex* m = new std::mutex();
+  return *m;
+}
+std::unordered_map<void*, int64_t>& aligned_charges() {
+  static auto* m = new std::unordered_map<void*, int64_t>();  // never destroyed: frees may come late
+  return *m;
+}
+
 void* allocate(std::size_t n, std::size_t align = 0) {
   // Refuse before asking the system: a bomb's 8 GB request never reaches malloc.
   if (n > std::size_t(std::numeric_limits<int64_t>::max() / 2) || t_net + int64_t(n) > t_cap) {
@@ -22,13 +40,24 @@ void* allocate(std::size_t n, std::size_t align = 0) {
     throw MemoryLimitExceeded();
   }
   void* p = nullptr;
+  int64_t size = 0;
   if (align > alignof(std::max_align_t)) {
     if (posix_memalign(&p, align, n ? n : 1) != 0) p = nullptr;
+    if (!p) throw std::bad_alloc();
+    constexpr int64_t kPage = 4096;
+    size = std::min(int64_t(malloc_usable_size(p)), (int64_t(n) + kPage - 1) / kPage * kPage);
+    try {
+      std::lock_guard<std::mutex> lock(aligned_mutex());
+      aligned_charges()[p] = size;
+    } catch (...) {
+      std::free(p);
+      throw;
+    }
   } else {
     p = std::malloc(n ? n : 1);
+    if (!p) throw std::bad_alloc();
+    size = int64_t(malloc_usable_size(p));  // a little over n; counted as held
   }
-  if (!p) throw std::bad_alloc();
-  const int64_t size = int64_t(malloc_usable_size(p));  // a little over n; counted as held
   t_net += size;
   const int64_t now = g_current.fetch_add(size, std::memory_order_relaxed) + size;
   int64_t peak = g_peak.load(std::memory_order_relaxed);
@@ -39,6 +68,23 @@ void* allocate(std::size_t n, std::size_t align = 0) {
 void release(void* p) noexcept {
   if (!p) return;
   const int64_t size = int64_t(malloc_usable_size(p));
+  t_net -= size;
+  g_current.fetch_sub(size, std::memory_order_relaxed);
+  std::free(p);
+}
+
+void release_aligned(void* p) noexcept {
+  if (!p) return;
+  int64_t size = -1;
+  {
+    std::lock_guard<std::mutex> lock(aligned_mutex());
+    auto it = aligned_charges().find(p);
+    if (it != aligned_charges().end()) {
+      size = it->second;
+      aligned_charges().erase(it);
+    }
+  }
+  if (size < 0) size = int64_t(malloc_usable_size(p));  // an alignment malloc met: counted as such
   t_net -= size;
   g_current.fetch_sub(size, std::memory_order_relaxed);
   std::free(p);
@@ -99,9 +145,9 @@ void operator delete(void* p, std::size_t) noexcept { iteas::release(p); }
 void operator delete[](void* p, std::size_t) noexcept { iteas::release(p); }
 void operator delete(void* p, const std::nothrow_t&) noexcept { iteas::release(p); }
 void operator delete[](void* p, const std::nothrow_t&) noexcept { iteas::release(p); }
-void operator delete(void* p, std::align_val_t) noexcept { iteas::release(p); }
-void operator delete[](void* p, std::align_val_t) noexcept { iteas::release(p); }
-void operator delete(void* p, std::size_t, std::align_val_t) noexcept { iteas::release(p); }
-void operator delete[](void* p, std::size_t, std::align_val_t) noexcept { iteas::release(p); }
-void operator delete(void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release(p); }
-void operator delete[](void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release(p); }
+void operator delete(void* p, std::align_val_t) noexcept { iteas::release_aligned(p); }
+void operator delete[](void* p, std::align_val_t) noexcept { iteas::release_aligned(p); }
+void operator delete(void* p, std::size_t, std::align_val_t) noexcept { iteas::release_aligned(p); }
+void operator delete[](void* p, std::size_t, std::align_val_t) noexcept { iteas::release_aligned(p); }
+void operator delete(void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release_aligned(p); }
+void operator delete[](void* p, std::align_val_t, const std::nothrow_t&) noexcept { iteas::release_aligned(p); }

@@ -178,6 +178,31 @@ TEST(MemoryBudget, RefusesPastTheCapNestsAndSurvivesForeignFrees) {
     }
 }
 
+// Arrays of 2 MB or more are allocated 2 MB-aligned (huge pages): they are
+// counted at their size, not at the mapping's slack, and freeing one gives
+// back exactly what it was charged, whichever way it is freed.
+TEST(MemoryBudget, CountsAlignedArraysAtTheirSize) {
+  // (The charges are kept aside in a table: its first allocation stays.)
+  ::operator delete(::operator new(kHugePageBytes, std::align_val_t(kHugePageBytes)), std::align_val_t(kHugePageBytes));
+  for (size_t bytes : {size_t(3) << 20, (size_t(5) << 20) + 12, size_t(17) << 20}) {
+    const int64_t before = current_heap_bytes();
+    {
+      Array<float> a(bytes / sizeof(float));
+      EXPECT_EQ(reinterpret_cast<uintptr_t>(a.data()) % kHugePageBytes, 0u) << bytes;
+      const int64_t held = current_heap_bytes() - before;
+      EXPECT_GE(held, int64_t(a.size() * sizeof(float))) << bytes;
+      EXPECT_LE(held, int64_t(a.size() * sizeof(float)) + 4096 + 64) << bytes;  // a page, and the table's entry
+      a.resize(a.size() / 4);  // shrinks in place; freed below at its capacity
+    }
+    EXPECT_EQ(current_heap_bytes(), before) << bytes;
+    void* p = ::operator new(bytes, std::align_val_t(kHugePageBytes));
+    ::operator delete(p, std::align_val_t(kHugePageBytes));  // unsized
+    EXPECT_EQ(current_heap_bytes(), before) << bytes;
+  }
+  MemoryBudget budget(4 << 20);
+  EXPECT_THROW(Array<int32_t>(2 << 20), MemoryLimitExceeded);  // 8 MB
+}
+
 TEST(Io, SniffsFormats) {
   for (const auto& [file, fmt] : std::vector<std::pair<std::string, std::string>>{
            {"Box.glb", "glb"}, {"Box.gltf", "gltf"}, {"cube_att.drc", "drc"}, {"eight.off", "off"}, {"bunny-npm.obj", "obj"}}) {
