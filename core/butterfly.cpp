@@ -121,7 +121,7 @@ void carry_rings(RingTable& rings) {
     const int32_t x = rings.corner[i];
     if (x >= 0) rings.corner[i] = 3 * (4 * (x / 3) + x % 3) + x % 3;
   }
-  std::vector<int32_t>().swap(rings.neighbour);
+  Array<int32_t>().swap(rings.neighbour);
   Array<float>().swap(rings.point);
   rings.carried = true;
 }

@@ -32,8 +32,8 @@ struct VertexClass {
 constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width search
 
 struct RingTable {
-  std::vector<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
-  std::vector<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
+  Array<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
+  Array<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
   // Set by carry_rings: offset and corner hold the rings of the next uniform
   // level (same vertices, same order); build_rings then only fills in the rest.
   bool carried = false;

@@ -104,7 +104,9 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   // splitting, to the pass below, in order) and is recorded for classifying
   // vertices.
   const int32_t nv = mesh.num_vertices();
-  std::vector<uint8_t> cut_kind(nc, 0);  // 1 non-manifold, 2 orientation conflict
+  // Per corner without an opposite (others are not read): 0 boundary, 1
+  // non-manifold, 2 orientation conflict.
+  Array<uint8_t> cut_kind(nc);
   std::vector<uint8_t> several(split_vertices ? nv : 0, 0);
   vertex_corner_.assign(nv, -1);
   fan_.assign(nv, 0);
@@ -140,8 +142,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
         opposite_[c] = -1;
         left[i] = -1;
         open = true;
-        if (reverse + same >= 3) cut_kind[c] = 1;
-        else if (same == 2) cut_kind[c] = 2;
+        cut_kind[c] = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
       }
       // Left links are one-to-one, so the walk left meets the start again or ends.
       int32_t first = 0;

@@ -27,16 +27,22 @@ void prepare_pages(void* p, size_t bytes) {
   // Every page of the block will be written: fault them all in with one call
   // instead of one trap per page (Linux 5.14+; older kernels say EINVAL and
   // the pages fault on first write as before).
-  // A block the allocator handed back from memory it kept (its middle and
-  // last pages already resident) is left alone: walking it costs more than
-  // it saves.
+  // A block the allocator handed back from memory it kept (already resident)
+  // is left alone: walking it costs more than it saves.
   const uintptr_t b = (lo + kPage - 1) & ~(kPage - 1), e = hi & ~(kPage - 1);
   if (e <= b) return;
-  auto resident = [](uintptr_t page) {
-    unsigned char v = 0;
-    return mincore(reinterpret_cast<void*>(page), kPage, &v) == 0 && (v & 1) != 0;
-  };
-  if (resident(b + ((e - b) / 2 & ~(kPage - 1))) && resident(e - kPage)) return;
+  // One call asks about the last pages: resident there means the block came
+  // from memory the allocator kept (heap blocks are carved upwards), fresh
+  // means a new mapping or a heap grown for it.
+  constexpr uintptr_t kProbe = 64;
+  const uintptr_t from = std::max(b, e - kProbe * kPage);
+  unsigned char v[kProbe];
+  if (mincore(reinterpret_cast<void*>(from), e - from, v) == 0) {
+    const size_t n = (e - from) / kPage;
+    bool all = true;
+    for (size_t i = 0; i < n; ++i) all = all && (v[i] & 1) != 0;
+    if (all) return;
+  }
   madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
 #endif
 #else
