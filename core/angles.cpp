@@ -125,18 +125,23 @@ ITEAS_SELECTS_VECTORISE static void sine_cosine(const float* const* __restrict n
   }
 }
 
-void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads) {
+void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads) {
   // Fixed chunks of faces: each computes its faces' normals once (neighbours
   // outside the chunk on the fly) and each edge's angle once, at its smaller
   // corner, for both corners. Values equal normal_angle's bit for bit.
+  // The NaN fill first, on all threads (a corner's value may be written from
+  // another chunk, that of its opposite).
   const int32_t nc = ct.num_corners();
-  theta.assign(nc, std::numeric_limits<float>::quiet_NaN());
+  theta.resize(nc);
+  parallel_for(nc, threads, [&](int64_t b, int64_t e) {
+    std::fill(theta.data() + b, theta.data() + e, std::numeric_limits<float>::quiet_NaN());
+  });
   constexpr int64_t kFaces = 4096;
   const int64_t nf = nc / 3, chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
-    std::vector<double> cache(3 * kFaces);
-    std::vector<uint8_t> valid(kFaces);
+    Array<double> cache(3 * kFaces);  // written before read, as valid
+    Array<uint8_t> valid(kFaces);
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
       for (int64_t f = f0; f < f1; ++f) valid[f - f0] = face_normal(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
@@ -159,7 +164,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& th
   });
 }
 
-AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std::vector<float>* theta,
+AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude, int threads) {
   // Fixed chunks of faces (deterministic for any thread count). Without theta,
   // each chunk computes its faces' normals once into a small cache; neighbours
@@ -177,7 +182,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std
     // The sines and cosines go through small blocks on the stack.
     constexpr int kBlock = 1024;
     float ys[kBlock], xs[kBlock], ts[kBlock];
-    std::vector<float> cache(theta ? 0 : 3 * kFaces), gathered(theta ? 0 : 6 * kBlock);
+    Array<float> cache(theta ? 0 : 3 * kFaces), gathered(theta ? 0 : 6 * kBlock);  // written before read
     // Both normals of each edge of a block, one array per coordinate (none
     // when theta is given).
     float* soa[6] = {};
@@ -260,7 +265,7 @@ std::string ThresholdSpec::text() const {
 }
 
 double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const CornerTable& ct,
-                         const std::vector<float>& theta, double exclude, int threads) {
+                         const Array<float>& theta, double exclude, int threads) {
   if (spec.kind == ThresholdSpec::Kind::kDegrees) return spec.value;
   if (spec.kind == ThresholdSpec::Kind::kMean)
     return summarize_angles(mesh, ct, &theta, 0, exclude, threads).mean;
@@ -303,7 +308,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   const int32_t nf = mesh.num_faces();
   constexpr int64_t kChunk = 1 << 15;
   const int64_t chunks = (nf + kChunk - 1) / kChunk;
-  std::vector<std::vector<int32_t>> hist(chunks);
+  std::vector<Array<int32_t>> hist(chunks);  // Array: populated in one call
   std::vector<float> mins(chunks, 180.0f);
   const float* p = mesh.positions.data();
   const int32_t* cv = mesh.corner_vertex.data();
@@ -313,7 +318,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
     constexpr int kBlock = 2048;
     float ys[kBlock], xs[kBlock], angles[kBlock];
     for (int64_t k = b; k < e; ++k) {
-      std::vector<int32_t>& h = hist[k];
+      Array<int32_t>& h = hist[k];
       h.assign(kBins, 0);
       int32_t* bins = h.data();
       float lo = 180.0f;
@@ -350,7 +355,8 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   });
   QualitySummary q;
   int64_t total = 0;
-  std::vector<int64_t> all(kBins, 0);
+  Array<int64_t> all;
+  all.assign(kBins, 0);
   q.min_angle = 180;
   for (int64_t k = 0; k < chunks; ++k) {
     q.min_angle = std::min(q.min_angle, double(mins[k]));

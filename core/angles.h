@@ -22,7 +22,7 @@ float normal_angle(const Mesh& mesh, int32_t f, int32_t g);
 
 // theta[c] for every corner whose edge is interior (NaN at boundaries, cuts
 // and zero-area faces). Both corners of an edge get the same value.
-void edge_angles(const Mesh& mesh, const CornerTable& ct, std::vector<float>& theta, int threads = 1);
+void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads = 1);
 
 struct AngleSummary {
   int64_t edges = 0;  // interior edges with a theta
@@ -34,7 +34,7 @@ struct AngleSummary {
 // Summary over each interior edge once. Edges with theta >= |exclude_at_or_above|
 // (creases) are left out when it is > 0. |theta| may be null: computed on the fly.
 // Deterministic for any thread count (fixed chunks, combined in order).
-AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const std::vector<float>* theta,
+AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude_at_or_above = 0, int threads = 1);
 
 // The threshold statistic: "mean", "median", "pNN" or a number of degrees.
@@ -44,7 +44,7 @@ struct ThresholdSpec {
   std::string text() const;
 };
 double compute_threshold(const ThresholdSpec& spec, const Mesh& mesh, const CornerTable& ct,
-                         const std::vector<float>& theta, double exclude_at_or_above = 0, int threads = 1);
+                         const Array<float>& theta, double exclude_at_or_above = 0, int threads = 1);
 
 // Smallest interior angle (degrees) per face; the minimum and 1st percentile.
 struct QualitySummary {

@@ -8,7 +8,7 @@
 
 namespace iteas {
 
-bool mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+bool mark_sharp_edges(const CornerTable& ct, const Array<float>* theta, double crease_angle,
                       std::vector<uint8_t>& sharp, int threads) {
   const bool creases = crease_angle > 0 && theta;
   const int32_t nc = ct.num_corners();

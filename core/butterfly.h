@@ -65,7 +65,7 @@ void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, 
 // Marks boundary edges and, when crease_angle > 0 and theta is given, edges
 // with theta >= it. Returns true when only boundary edges can be marked (no
 // crease was asked for): what classify_vertices' |sharp_is_boundary| wants.
-bool mark_sharp_edges(const CornerTable& ct, const std::vector<float>* theta, double crease_angle,
+bool mark_sharp_edges(const CornerTable& ct, const Array<float>* theta, double crease_angle,
                       std::vector<uint8_t>& sharp, int threads = 1);
 
 // |sharp_is_boundary|: the sharp flags mark boundary edges only (no crease);

@@ -81,7 +81,7 @@ void blend_wedge(Mesh& m, int32_t out, int32_t a, int32_t b) {
 
 struct State {
   CornerTable ct;
-  std::vector<float> theta;    // per corner (adaptive levels and creases)
+  Array<float> theta;          // per corner (adaptive levels and creases)
   std::vector<uint8_t> sharp;  // per corner
   std::vector<uint8_t> green;  // per face: 0, 1 (first child), 2 (second child)
   // Stall detection (adaptive modes, stall > 0): per face, the largest θ its
@@ -144,7 +144,7 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   s.bctx.tension = o.tension;
   s.bctx.green = &s.green;
   if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
-  else std::vector<float>().swap(s.theta);
+  else Array<float>().swap(s.theta);
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
   const bool boundary_only =
@@ -352,7 +352,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   } else {
     s.ct = CornerTable();  // stale: no use may follow
   }
-  std::vector<float>().swap(s.theta);
+  Array<float>().swap(s.theta);
   // Without creases the next level's sharp edges are its boundary: no flags.
   std::vector<uint8_t>().swap(s.sharp);
   if (!derive_classes) {

@@ -97,7 +97,7 @@ Status inspect(const uint8_t* data, size_t size, const std::string& name_hint, c
     Mesh m = slot.mesh;
     CornerTable ct;
     const TopologyReport rep = ct.build(m, true, 0);
-    std::vector<float> theta;
+    Array<float> theta;
     edge_angles(m, ct, theta, 0);
     const AngleSummary a = summarize_angles(m, ct, &theta, 0, 0, 0);
     for (int i = 0; i < 18; ++i) hist[i] += a.histogram[i];

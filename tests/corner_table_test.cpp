@@ -129,7 +129,7 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
       Mesh m = s.mesh;
       CornerTable ct;
       ct.build(m, true, 1);
-      std::vector<float> theta;
+      Array<float> theta;
       edge_angles(m, ct, theta, 2);  // double precision, atan2
       const AngleSummary precise = summarize_angles(m, ct, &theta, 20.0, 0, 2);
       const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 2);
