@@ -37,12 +37,9 @@ void prepare_pages(void* p, size_t bytes) {
   constexpr uintptr_t kProbe = 64;
   const uintptr_t from = std::max(b, e - kProbe * kPage);
   unsigned char v[kProbe];
-  if (mincore(reinterpret_cast<void*>(from), e - from, v) == 0) {
-    const size_t n = (e - from) / kPage;
-    bool all = true;
-    for (size_t i = 0; i < n; ++i) all = all && (v[i] & 1) != 0;
-    if (all) return;
-  }
+  if (mincore(reinterpret_cast<void*>(from), e - from, v) == 0 &&
+      std::all_of(v, v + (e - from) / kPage, [](unsigned char x) { return (x & 1) != 0; }))
+    return;
   madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
 #endif
 #else
