@@ -54,6 +54,7 @@ class Pool {
     for (int w = 0; w < workers; ++w) {
       Slot& s = *slots_[w];
       s.error = nullptr;
+      s.state.store(kAssigned, std::memory_order_release);
       s.go.store(s.go.load(std::memory_order_relaxed) + 1, std::memory_order_seq_cst);
       if (s.sleeping.load(std::memory_order_seq_cst)) {
         std::lock_guard<std::mutex> lock(s.mutex);
@@ -63,8 +64,12 @@ class Pool {
     error = loop_.drain();
     for (int w = 0; w < workers; ++w) {
       Slot& s = *slots_[w];
-      const uint64_t want = s.go.load(std::memory_order_relaxed);
-      for (int spins = 0; s.done.load(std::memory_order_acquire) != want; ++spins) {
+      // Every piece is claimed and the caller's are done. A worker that has
+      // not joined yet (still waking from its sleep) is told not to: waiting
+      // for it would only add its wake-up time to the loop.
+      int expected = kAssigned;
+      if (s.state.compare_exchange_strong(expected, kIdle, std::memory_order_acq_rel)) continue;
+      for (int spins = 0; s.state.load(std::memory_order_acquire) != kIdle; ++spins) {
         if (spins < 4096) cpu_relax();
         else std::this_thread::yield();
       }
@@ -94,8 +99,13 @@ class Pool {
       }
     }
   };
+  // A worker's part in the current loop: assigned by the caller, then either
+  // joined by the worker (running, back to idle when it has drained) or
+  // withdrawn by the caller before the worker got to it (back to idle).
+  static constexpr int kIdle = 0, kAssigned = 1, kRunning = 2;
   struct Slot {
-    std::atomic<uint64_t> go{0}, done{0};
+    std::atomic<uint64_t> go{0};
+    std::atomic<int> state{kIdle};
     std::atomic<bool> sleeping{false};
     Loop* loop = nullptr;
     std::exception_ptr error;
@@ -136,8 +146,12 @@ class Pool {
         }
       }
       seen = s->go.load(std::memory_order_acquire);
+      // Join the loop unless the caller has withdrawn it (then the loop's
+      // data may already belong to the next loop, which bumps go again).
+      int expected = kAssigned;
+      if (!s->state.compare_exchange_strong(expected, kRunning, std::memory_order_acq_rel)) continue;
       s->error = s->loop->drain();
-      s->done.store(seen, std::memory_order_release);
+      s->state.store(kIdle, std::memory_order_release);
     }
   }
 

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <stdexcept>
 
@@ -200,4 +201,25 @@ TEST(Parallel, EveryIndexOnceWhateverThePartition) {
   int64_t wrong = 0;
   for (auto& x : seen) wrong += x.load() != 1;
   EXPECT_EQ(wrong, 0) << "nested loops";
+}
+
+// Loops that follow a serial step long enough for the workers to fall asleep:
+// the caller may finish every piece before a worker wakes, and then withdraws
+// that worker's part instead of waiting for it; a worker that wakes late must
+// not touch the loop (by then the next loop's). Every index once, each time.
+TEST(Parallel, WorkersWakingLateNeverTouchAFinishedLoop) {
+  std::vector<std::atomic<int>> seen(2048);
+  for (int round = 0; round < 400; ++round) {
+    const auto gap = std::chrono::microseconds(round % 7 == 0 ? 0 : 10 * (round % 13));
+    const auto until = std::chrono::steady_clock::now() + gap;
+    while (std::chrono::steady_clock::now() < until) {}
+    const int64_t n = 64 + (round * 37) % 1984;
+    for (int64_t i = 0; i < n; ++i) seen[i] = 0;
+    iteas::parallel_for(n, 3, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) ++seen[i];
+    }, 1);
+    int64_t wrong = 0;
+    for (int64_t i = 0; i < n; ++i) wrong += seen[i].load() != 1;
+    ASSERT_EQ(wrong, 0) << "round " << round << ", n " << n;
+  }
 }
