@@ -355,8 +355,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   });
   QualitySummary q;
   int64_t total = 0;
-  Array<int64_t> all;
-  all.assign(kBins, 0);
+  Array<int64_t> all(kBins, 0);
   q.min_angle = 180;
   for (int64_t k = 0; k < chunks; ++k) {
     q.min_angle = std::min(q.min_angle, double(mins[k]));
