@@ -33,10 +33,10 @@ inline void cpu_relax() {
 // a dozen loops with short serial steps between them. Each worker has its own
 // slot: the caller points it at the loop and bumps its generation; the worker
 // spins briefly after each loop (the next one usually follows within
-// microseconds), then sleeps on a condition variable. The loop's pieces are
-// claimed from a shared counter by the caller and the workers alike, so a
-// thread that is slowed (an uneven piece, a busy core) does not hold the other
-// up; which thread runs a piece never changes what the piece writes.
+// microseconds), then sleeps on a condition variable. Each thread runs its own
+// share of the loop's pieces, then claims what is left of the others' shares,
+// so a thread that is slowed (an uneven piece, a busy core) does not hold the
+// other up; which thread runs a piece never changes what the piece writes.
 class Pool {
  public:
   // Runs the pieces of [0, n) on the caller and |workers| workers. Returns
@@ -49,7 +49,7 @@ class Pool {
     loop_.body = &body;
     loop_.n = n;
     loop_.piece = piece;
-    loop_.next.store(0, std::memory_order_relaxed);
+    loop_.deal(workers + 1);
     loop_.failed.store(false, std::memory_order_relaxed);
     for (int w = 0; w < workers; ++w) {
       Slot& s = *slots_[w];
@@ -61,7 +61,7 @@ class Pool {
         s.wake.notify_one();
       }
     }
-    error = loop_.drain();
+    error = loop_.drain(0);
     for (int w = 0; w < workers; ++w) {
       Slot& s = *slots_[w];
       // Every piece is claimed and the caller's are done. A worker that has
@@ -79,24 +79,51 @@ class Pool {
   }
 
  private:
+  // The loop's pieces are dealt in contiguous shares, one per thread (the
+  // caller's first): each thread claims its own share's pieces in order, then
+  // helps with the others'. Consecutive loops over the same index space (or
+  // over a level's children, 4 faces per parent) then mostly give a thread
+  // the data it wrote itself in the loop before, still in its own cache;
+  // claiming every piece from one shared counter handed each thread a
+  // different part every loop, whose lines then came from the other core.
   struct Loop {
+    static constexpr int kMaxShares = 64;
+    struct alignas(64) Share {
+      std::atomic<int64_t> next{0};
+      int64_t end = 0;
+    };
     const Body* body = nullptr;
     int64_t n = 0, piece = 1;
-    std::atomic<int64_t> next{0};
+    int shares = 1;
+    Share share[kMaxShares];
     std::atomic<bool> failed{false};
-    // Claims and runs pieces until none are left (or one has thrown).
-    std::exception_ptr drain() {
-      for (;;) {
-        if (failed.load(std::memory_order_relaxed)) return nullptr;
-        const int64_t b = next.fetch_add(1, std::memory_order_relaxed) * piece;
-        if (b >= n) return nullptr;
-        try {
-          (*body)(b, std::min(n, b + piece));
-        } catch (...) {
-          failed.store(true, std::memory_order_relaxed);
-          return std::current_exception();
+    void deal(int threads) {
+      const int64_t pieces = (n + piece - 1) / piece;
+      shares = std::min(threads, kMaxShares);
+      for (int t = 0; t < shares; ++t) {
+        share[t].next.store(pieces * t / shares, std::memory_order_relaxed);
+        share[t].end = pieces * (t + 1) / shares;
+      }
+    }
+    // Claims and runs pieces until none are left (or one has thrown):
+    // participant |self|'s share first (0 is the caller, worker w is w + 1).
+    std::exception_ptr drain(int self) {
+      for (int k = 0; k < shares; ++k) {
+        Share& sh = share[(self + k) % shares];
+        for (;;) {
+          if (failed.load(std::memory_order_relaxed)) return nullptr;
+          const int64_t p = sh.next.fetch_add(1, std::memory_order_relaxed);
+          if (p >= sh.end) break;
+          const int64_t b = p * piece;
+          try {
+            (*body)(b, std::min(n, b + piece));
+          } catch (...) {
+            failed.store(true, std::memory_order_relaxed);
+            return std::current_exception();
+          }
         }
       }
+      return nullptr;
     }
   };
   // A worker's part in the current loop: assigned by the caller, then either
@@ -108,6 +135,7 @@ class Pool {
     std::atomic<int> state{kIdle};
     std::atomic<bool> sleeping{false};
     Loop* loop = nullptr;
+    int index = 1;  // participant number in a loop (the caller is 0)
     std::exception_ptr error;
     std::mutex mutex;
     std::condition_variable wake;
@@ -118,6 +146,7 @@ class Pool {
       slots_.push_back(std::make_unique<Slot>());
       Slot* s = slots_.back().get();
       s->loop = &loop_;
+      s->index = int(slots_.size());
       try {
         std::thread(&Pool::work, s).detach();
       } catch (const std::system_error&) {
@@ -150,7 +179,7 @@ class Pool {
       // data may already belong to the next loop, which bumps go again).
       int expected = kAssigned;
       if (!s->state.compare_exchange_strong(expected, kRunning, std::memory_order_acq_rel)) continue;
-      s->error = s->loop->drain();
+      s->error = s->loop->drain(s->index);
       s->state.store(kIdle, std::memory_order_release);
     }
   }

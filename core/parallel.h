@@ -1,5 +1,6 @@
-// A deterministic parallel-for: the range is cut into contiguous pieces that
-// the calling thread and persistent workers claim as they go. Results never
+// A deterministic parallel-for: the range is cut into contiguous pieces, dealt
+// in contiguous shares to the calling thread and persistent workers, which
+// claim their own share's pieces in order and then the rest. Results never
 // depend on scheduling or on the thread count as long as each index writes
 // only its own outputs (loops that reduce do so per fixed-size chunk and
 // combine the chunks in order).

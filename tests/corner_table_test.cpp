@@ -177,8 +177,9 @@ TEST(Parallel, ExceptionsReachTheCallerAfterEveryPieceEnded) {
 }
 
 // Every index is visited exactly once, whatever the thread count, grain and
-// size (pieces are claimed dynamically), including loops started from inside
-// a loop (the pool is busy: they fall back to threads of their own).
+// size (pieces are dealt in shares, then claimed by whichever thread is free),
+// including loops started from inside a loop (the pool is busy: they fall
+// back to threads of their own).
 TEST(Parallel, EveryIndexOnceWhateverThePartition) {
   for (int threads : {1, 2, 3, 8})
     for (int64_t n : {1, 7, 4096, 100001})
