@@ -166,7 +166,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const int32_t* opp = s.ct.opposites().data();
-  auto canonical = [opp](int64_t c) { return opp[c] < 0 || c < opp[c]; };
+  // opp[c] < 0 || c < opp[c], in one unsigned comparison (no branch: about
+  // half the corners are canonical, in no order a predictor could learn).
+  auto canonical = [opp](int64_t c) { return uint32_t(opp[c]) > uint32_t(c); };
   derive_classes = derive_classes && s.green.empty() && connectivity;
 
   // Topology pass 1: number edges (canonical corners) in corner order.
@@ -181,10 +183,15 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
       int64_t ne = 0, nw = 0;
-      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
-        if (!canonical(c)) continue;
-        ++ne;
-        if (wedges) nw += (opp[c] < 0 || shared(int32_t(c), opp[c])) ? 1 : 2;
+      const int64_t begin = k * kChunk, end = std::min(nc, (k + 1) * kChunk);
+      if (!wedges) {
+        for (int64_t c = begin; c < end; ++c) ne += canonical(c);
+      } else {
+        for (int64_t c = begin; c < end; ++c) {
+          if (!canonical(c)) continue;
+          ++ne;
+          nw += (opp[c] < 0 || shared(int32_t(c), opp[c])) ? 1 : 2;
+        }
       }
       edges_in[k + 1] = ne;
       wedges_in[k + 1] = nw;
@@ -218,8 +225,10 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
       int64_t n = 0;
-      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c)
-        if (canonical(c)) list[n++] = int32_t(c);
+      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
+        list[n] = int32_t(c);  // kept only when canonical (no branch)
+        n += canonical(c);
+      }
       const int32_t first = int32_t(nv + edges_in[k]);
       if (m.vertex_channels.empty()) {
         butterfly_points(s.bctx, list.data(), n, m.positions.data(), &m.positions[3 * size_t(first)]);
