@@ -223,18 +223,43 @@ const WeightTable kWeights;  // immutable after static initialisation
 
 // The extraordinary rule of each stored ring's vertex for each of its edges,
 // summed as PointSum sums it (3/4 v first, then the ring in order, zero
-// weights skipped), so a rule read from here has the walk's bits.
+// weights skipped), so a rule read from here has the walk's bits. The K points
+// of a ring are summed side by side, weight after weight (each point still
+// adds its terms in the walk's order, so the bits are the same): the sums no
+// longer wait on one another, and each neighbour is converted once, not K times.
 void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads) {
   rings.point.resize(3 * rings.neighbour.size());
   const float* pos = mesh.positions.data();
   parallel_for(int64_t(rings.offset.size()), threads, [&](int64_t b, int64_t e) {
+    constexpr int kSide = 32;  // rings up to this valence are summed side by side
+    double ring[3][2 * kSide], sum[3][kSide];
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = rings.offset[v];
       if (off < 0) continue;
       const int K = vclass.valence[v];
-      const double* w = K < kMaxTabulated ? kWeights.w[K] : nullptr;
       const int32_t* nb = rings.neighbour.data() + off;
       const float* x = pos + 3 * size_t(v);
+      float* out = rings.point.data() + 3 * size_t(off);
+      if (K <= kSide) {
+        const double* w = kWeights.w[K];
+        // The ring twice over: point i's j-th term is ring[i + j].
+        for (int j = 0; j < K; ++j)
+          for (int k = 0; k < 3; ++k) ring[k][j] = ring[k][j + K] = double(pos[3 * size_t(nb[j]) + k]);
+        for (int k = 0; k < 3; ++k) {
+          const double c = 0.0 + 0.75 * double(x[k]);
+          for (int i = 0; i < K; ++i) sum[k][i] = c;
+        }
+        for (int j = 0; j < K; ++j) {
+          const double s = w[j];
+          if (s == 0.0) continue;
+          for (int k = 0; k < 3; ++k)
+            for (int i = 0; i < K; ++i) sum[k][i] += s * ring[k][i + j];
+        }
+        for (int i = 0; i < K; ++i)
+          for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sum[k][i]);
+        continue;
+      }
+      const double* w = K < kMaxTabulated ? kWeights.w[K] : nullptr;
       for (int i = 0; i < K; ++i) {
         double p[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) p[k] += 0.75 * double(x[k]);
@@ -244,8 +269,7 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
           const float* y = pos + 3 * size_t(nb[r]);
           for (int k = 0; k < 3; ++k) p[k] += s * double(y[k]);
         }
-        float* out = rings.point.data() + 3 * (size_t(off) + size_t(i));
-        for (int k = 0; k < 3; ++k) out[k] = float(p[k]);
+        for (int k = 0; k < 3; ++k) out[3 * i + k] = float(p[k]);
       }
     }
   }, 256);
