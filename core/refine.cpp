@@ -235,15 +235,24 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       } else {
         for (int64_t i = 0; i < n; ++i) apply_stencil(m, s.bctx, list[i], first + int32_t(i), terms);
       }
+      // Raw pointers: the byte stores below may alias anything, which would
+      // make the compiler reload every array's address after each of them.
+      int32_t* ev = evert.data();
+      const int32_t* ls = list.data();
       for (int64_t i = 0; i < n; ++i) {
-        const int32_t c = list[i], o = opp[c], v = first + int32_t(i);
-        evert[c] = v;
-        if (o >= 0) evert[o] = v;
-        if (derive_classes) {
-          // A midpoint of an interior edge has a closed fan of six faces; of a
-          // boundary edge, an open fan of three (valence 4).
-          vclass.valence[v] = o >= 0 ? 6 : 4;
-          vclass.complete[v] = o >= 0;
+        const int32_t c = ls[i], o = opp[c];
+        ev[c] = first + int32_t(i);
+        if (o >= 0) ev[o] = first + int32_t(i);
+      }
+      if (derive_classes) {
+        // A midpoint of an interior edge has a closed fan of six faces; of a
+        // boundary edge, an open fan of three (valence 4).
+        int32_t* valence = vclass.valence.data() + first;
+        uint8_t* complete = vclass.complete.data() + first;
+        for (int64_t i = 0; i < n; ++i) {
+          const bool interior = opp[ls[i]] >= 0;
+          valence[i] = 4 + 2 * int32_t(interior);
+          complete[i] = interior;
         }
       }
       if (!wedges) continue;
