@@ -322,10 +322,16 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       }
     });
     parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+      int32_t* pvc = vc.data();
+      const int32_t* ev = evert.data();
+      int32_t unused;  // where a non-canonical corner writes (a select, not a branch)
       for (int64_t f = b; f < e; ++f)
         for (int k = 0; k < 3; ++k) {
           const int64_t c = 3 * f + k;
-          if (canonical(c)) vc[evert[c]] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+          const uintptr_t keep = uintptr_t(0) - uintptr_t(canonical(c));  // all ones or zero
+          int32_t* to = reinterpret_cast<int32_t*>((reinterpret_cast<uintptr_t>(pvc + ev[c]) & keep) |
+                                                   (reinterpret_cast<uintptr_t>(&unused) & ~keep));
+          *to = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
         }
     });
   }
