@@ -43,7 +43,8 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
       bool closed = false, has_sharp = false;
       while (true) {
         ++faces;
-        if (sharp[prev_corner(c)]) has_sharp = true;  // outgoing edge v -> next
+        // outgoing edge v -> next (no flags: the boundary is what is sharp)
+        if (sharp.empty() ? ct.opposite(prev_corner(c)) < 0 : sharp[prev_corner(c)] != 0) has_sharp = true;
         const int32_t s = ct.swing_right(c);
         if (s < 0) break;
         if (s == first) { closed = true; break; }

@@ -69,7 +69,8 @@ bool mark_sharp_edges(const CornerTable& ct, const Array<float>* theta, double c
                       std::vector<uint8_t>& sharp, int threads = 1);
 
 // |sharp_is_boundary|: the sharp flags mark boundary edges only (no crease);
-// the fans the corner table recorded are then used instead of walking.
+// the fans the corner table recorded are then used instead of walking. Empty
+// |sharp|: no flags, the boundary edges are the sharp ones.
 void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vector<uint8_t>& sharp,
                        VertexClass& out, int threads = 1, bool sharp_is_boundary = false);
 

@@ -147,8 +147,12 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   else Array<float>().swap(s.theta);
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
-  const bool boundary_only =
-      mark_sharp_edges(s.ct, need_theta ? &s.theta : nullptr, o.crease_angle, s.sharp, s.threads);
+  // Without angles there are no creases (the uniform path without
+  // crease_angle): the sharp edges are the boundary, which the opposites
+  // already tell, so no flags are made (as on the levels the uniform path derives).
+  bool boundary_only = true;
+  if (need_theta) boundary_only = mark_sharp_edges(s.ct, &s.theta, o.crease_angle, s.sharp, s.threads);
+  else std::vector<uint8_t>().swap(s.sharp);
   classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads, boundary_only);
   if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
 }
