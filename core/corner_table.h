@@ -18,8 +18,17 @@
 
 namespace iteas {
 
-inline int32_t next_corner(int32_t c) { return (c % 3 == 2) ? c - 2 : c + 1; }
-inline int32_t prev_corner(int32_t c) { return (c % 3 == 0) ? c + 2 : c - 1; }
+// Corners c >= 0. Arithmetic, not a choice: GCC compiled the conditional
+// forms into branches on c % 3, which the Butterfly stencils (whose corners
+// come in no order) mispredicted about every other edge.
+inline int32_t next_corner(int32_t c) {
+  const uint32_t r = uint32_t(c) % 3u;
+  return c + 1 - 3 * int32_t(r >> 1);  // r == 2: back to the face's first corner
+}
+inline int32_t prev_corner(int32_t c) {
+  const uint32_t r = uint32_t(c) % 3u;
+  return c - 1 + 3 * int32_t((r - 1u) >> 31);  // r == 0: on to the face's last corner
+}
 
 // Bit i set when p[i] == x, for i < n <= 8. Reads 8 entries whatever n is (the
 // caller pads its arrays): one SSE2 compare instead of a branch per entry,
