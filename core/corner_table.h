@@ -19,8 +19,8 @@
 namespace iteas {
 
 // Corners c >= 0. Arithmetic, not a choice: GCC compiled the conditional
-// forms into branches on c % 3, which the Butterfly stencils (whose corners
-// come in no order) mispredicted about every other edge.
+// forms into branches on c % 3, which has no pattern where corners come in no
+// order (uniform levels 2 and 3 ran 5-12 % faster without them).
 inline int32_t next_corner(int32_t c) {
   const uint32_t r = uint32_t(c) % 3u;
   return c + 1 - 3 * int32_t(r >> 1);  // r == 2: back to the face's first corner

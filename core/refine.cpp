@@ -242,9 +242,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       // Raw pointers: the byte stores below may alias anything, which would
       // make the compiler reload every array's address after each of them.
       int32_t* ev = evert.data();
-      const int32_t* ls = list.data();
+      const int32_t* listed = list.data();
       for (int64_t i = 0; i < n; ++i) {
-        const int32_t c = ls[i], o = opp[c];
+        const int32_t c = listed[i], o = opp[c];
         ev[c] = first + int32_t(i);
         if (o >= 0) ev[o] = first + int32_t(i);
       }
@@ -254,7 +254,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         int32_t* valence = vclass.valence.data() + first;
         uint8_t* complete = vclass.complete.data() + first;
         for (int64_t i = 0; i < n; ++i) {
-          const bool interior = opp[ls[i]] >= 0;
+          const bool interior = opp[listed[i]] >= 0;
           valence[i] = 4 + 2 * int32_t(interior);
           complete[i] = interior;
         }
