@@ -221,6 +221,10 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     vclass.valence.resize(size_t(nv) + ne);
     vclass.complete.resize(size_t(nv) + ne);
   }
+  // The new vertices' fan corners are written by the data pass (the stencils
+  // read only the old vertices' corners).
+  std::vector<int32_t>& vc = s.ct.vertex_corners();
+  if (connectivity) vc.resize(size_t(nv) + ne);
 
   // Data pass: stencils from the old level, a chunk of edges at a time; new
   // wedges blended per side.
@@ -247,6 +251,15 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         const int32_t c = listed[i], o = opp[c];
         ev[c] = first + int32_t(i);
         if (o >= 0) ev[o] = first + int32_t(i);
+      }
+      if (connectivity) {
+        // The new vertex on the edge opposite corner k of face f starts its
+        // fan at corner k+1 of child k+2.
+        int32_t* fan = vc.data() + first;
+        for (int64_t i = 0; i < n; ++i) {
+          const uint32_t f = uint32_t(listed[i]) / 3u, k = uint32_t(listed[i]) % 3u;
+          fan[i] = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
+        }
       }
       if (derive_classes) {
         // A midpoint of an interior edge has a closed fan of six faces; of a
@@ -313,32 +326,14 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     }
   });
 
-  // Vertex corners follow: an old vertex's corner k of face f becomes corner
-  // k of child k (still the start of an open fan); the new vertex on the edge
-  // opposite corner k starts its fan at corner k+1 of child k+2.
-  if (connectivity) {
-    std::vector<int32_t>& vc = s.ct.vertex_corners();
-    vc.resize(size_t(nv) + ne);
-    parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
-      for (int64_t v = b; v < e; ++v) {
-        const int32_t c = vc[v];
-        if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
-      }
-    });
-    parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-      int32_t* pvc = vc.data();
-      const int32_t* ev = evert.data();
-      int32_t unused;  // where a non-canonical corner writes (a select, not a branch)
-      for (int64_t f = b; f < e; ++f)
-        for (int k = 0; k < 3; ++k) {
-          const int64_t c = 3 * f + k;
-          const uintptr_t keep = uintptr_t(0) - uintptr_t(canonical(c));  // all ones or zero
-          int32_t* to = reinterpret_cast<int32_t*>((reinterpret_cast<uintptr_t>(pvc + ev[c]) & keep) |
-                                                   (reinterpret_cast<uintptr_t>(&unused) & ~keep));
-          *to = int32_t(3 * (4 * f + (k + 2) % 3) + (k + 1) % 3);
-        }
-    });
-  }
+  // The old vertices' corners follow: corner k of face f becomes corner k of
+  // child k (still the start of an open fan).
+  if (connectivity) parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t c = vc[v];
+      if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
+    }
+  });
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
   Array<int32_t>().swap(evert);
   Array<int32_t>().swap(ewedge);
