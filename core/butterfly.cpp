@@ -228,12 +228,50 @@ const WeightTable kWeights;  // immutable after static initialisation
 // of a ring are summed side by side, weight after weight (each point still
 // adds its terms in the walk's order, so the bits are the same): the sums no
 // longer wait on one another, and each neighbour is converted once, not K times.
+// Valences 3-10 (all but a few vertices) have a function each, every loop's
+// count known to the compiler: unrolled, no loop exit to predict (valences vary
+// from vertex to vertex; the loops of one form for all mispredicted their exits).
+template <int K>
+ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t* nb, float* out) {
+  const double* w = kWeights.w[K];
+  double ring[3][2 * K], sum[3][K];
+  // The ring twice over: point i's j-th term is ring[i + j].
+  for (int j = 0; j < K; ++j)
+    for (int k = 0; k < 3; ++k) ring[k][j] = ring[k][j + K] = double(pos[3 * size_t(nb[j]) + k]);
+  for (int k = 0; k < 3; ++k) {
+    const double c = 0.0 + 0.75 * double(x[k]);
+    for (int i = 0; i < K; ++i) sum[k][i] = c;
+  }
+  for (int j = 0; j < K; ++j) {
+    const double s = w[j];
+    if (s == 0.0) continue;  // valence 4's odd weights: a fixed outcome per j, predicted
+    for (int k = 0; k < 3; ++k)
+      for (int i = 0; i < K; ++i) sum[k][i] += s * ring[k][i + j];
+  }
+  for (int i = 0; i < K; ++i)
+    for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sum[k][i]);
+}
+
+// Any valence: the ring's points one after another.
+void ring_points_any(const float* pos, const float* x, int K, const int32_t* nb, float* out) {
+  const double* w = K < kMaxTabulated ? kWeights.w[K] : nullptr;
+  for (int i = 0; i < K; ++i) {
+    double p[3] = {0, 0, 0};
+    for (int k = 0; k < 3; ++k) p[k] += 0.75 * double(x[k]);
+    for (int j = 0, r = i; j < K; ++j, r = r + 1 == K ? 0 : r + 1) {
+      const double s = w ? w[j] : formula_weight(K, j);
+      if (s == 0.0) continue;
+      const float* y = pos + 3 * size_t(nb[r]);
+      for (int k = 0; k < 3; ++k) p[k] += s * double(y[k]);
+    }
+    for (int k = 0; k < 3; ++k) out[3 * i + k] = float(p[k]);
+  }
+}
+
 void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads) {
   rings.point.resize(3 * rings.neighbour.size());
   const float* pos = mesh.positions.data();
   parallel_for(int64_t(rings.offset.size()), threads, [&](int64_t b, int64_t e) {
-    constexpr int kSide = 32;  // rings up to this valence are summed side by side
-    double ring[3][2 * kSide], sum[3][kSide];
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = rings.offset[v];
       if (off < 0) continue;
@@ -241,36 +279,15 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
       const int32_t* nb = rings.neighbour.data() + off;
       const float* x = pos + 3 * size_t(v);
       float* out = rings.point.data() + 3 * size_t(off);
-      if (K <= kSide) {
-        const double* w = kWeights.w[K];
-        // The ring twice over: point i's j-th term is ring[i + j].
-        for (int j = 0; j < K; ++j)
-          for (int k = 0; k < 3; ++k) ring[k][j] = ring[k][j + K] = double(pos[3 * size_t(nb[j]) + k]);
-        for (int k = 0; k < 3; ++k) {
-          const double c = 0.0 + 0.75 * double(x[k]);
-          for (int i = 0; i < K; ++i) sum[k][i] = c;
-        }
-        for (int j = 0; j < K; ++j) {
-          const double s = w[j];
-          if (s == 0.0) continue;
-          for (int k = 0; k < 3; ++k)
-            for (int i = 0; i < K; ++i) sum[k][i] += s * ring[k][i + j];
-        }
-        for (int i = 0; i < K; ++i)
-          for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sum[k][i]);
-        continue;
-      }
-      const double* w = K < kMaxTabulated ? kWeights.w[K] : nullptr;
-      for (int i = 0; i < K; ++i) {
-        double p[3] = {0, 0, 0};
-        for (int k = 0; k < 3; ++k) p[k] += 0.75 * double(x[k]);
-        for (int j = 0, r = i; j < K; ++j, r = r + 1 == K ? 0 : r + 1) {
-          const double s = w ? w[j] : formula_weight(K, j);
-          if (s == 0.0) continue;
-          const float* y = pos + 3 * size_t(nb[r]);
-          for (int k = 0; k < 3; ++k) p[k] += s * double(y[k]);
-        }
-        for (int k = 0; k < 3; ++k) out[3 * i + k] = float(p[k]);
+      switch (K) {
+        case 3: ring_points_of<3>(pos, x, nb, out); break;
+        case 4: ring_points_of<4>(pos, x, nb, out); break;
+        case 5: ring_points_of<5>(pos, x, nb, out); break;
+        case 7: ring_points_of<7>(pos, x, nb, out); break;
+        case 8: ring_points_of<8>(pos, x, nb, out); break;
+        case 9: ring_points_of<9>(pos, x, nb, out); break;
+        case 10: ring_points_of<10>(pos, x, nb, out); break;
+        default: ring_points_any(pos, x, K, nb, out); break;
       }
     }
   }, 256);
