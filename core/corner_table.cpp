@@ -74,6 +74,46 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
   }
 }
 
+// A run of N corners (3 <= N <= 8) whose every edge is matched once each way,
+// as at nearly every vertex: the matching below with N known to the compiler.
+// Its loops are unrolled (no exit to mispredict: N varies from vertex to
+// vertex) and the fan walk takes N steps whatever its length, counting the
+// steps before it returns to |first|. False when some edge is not matched
+// once each way; the generic pass then rewrites this run's opposites.
+// Otherwise |right| is a permutation (two entries matching the same one would
+// share their next vertex), so the walk from |first| is a cycle of |faces|
+// <= N steps; order entries past it are written too, never read (a fan order
+// is read for a vertex whose fan has as many faces as it has corners).
+template <int N>
+inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order, int32_t& first,
+                           int32_t& faces) {
+  const int32_t* corners = vc.corners.data() + rb;
+  const int32_t* nexts = vc.nexts.data() + rb;
+  const int32_t* prevs = vc.prevs.data() + rb;
+  int32_t right[8];
+  unsigned bad = 0;
+  for (int i = 0; i < N; ++i) {
+    const int32_t b = nexts[i];
+    const unsigned r = equal_mask8(prevs, b, N), s = equal_mask8(nexts, b, N);
+    bad |= (r & (r - 1)) | (s ^ (1u << i)) | unsigned(r == 0);
+    const int m = __builtin_ctz(r | 0x80u);  // 7 when r == 0 (then bad)
+    opposite[prev_corner(corners[i])] = next_corner(corners[m]);
+    right[m] = i;
+  }
+  if (bad) return false;
+  first = right[0];
+  int32_t x = first, count = 0;
+  bool back = false;
+  for (int step = 0; step < N; ++step) {
+    if (order) order[rb + step] = corners[x];
+    x = right[x];
+    count += !back;
+    back |= x == first;
+  }
+  faces = count;
+  return true;
+}
+
 }  // namespace
 
 TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order) {
@@ -124,6 +164,23 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
     for (int64_t a = begin; a < end; ++a) {
       const int32_t rb = vc.offset[a], re = vc.offset[a + 1], n = re - rb;
       if (n == 0) continue;
+      int32_t first = 0, faces = 0;
+      bool manifold = false;
+      switch (n) {
+        case 3: manifold = match_manifold<3>(vc, rb, opposite_.data(), order, first, faces); break;
+        case 4: manifold = match_manifold<4>(vc, rb, opposite_.data(), order, first, faces); break;
+        case 5: manifold = match_manifold<5>(vc, rb, opposite_.data(), order, first, faces); break;
+        case 6: manifold = match_manifold<6>(vc, rb, opposite_.data(), order, first, faces); break;
+        case 7: manifold = match_manifold<7>(vc, rb, opposite_.data(), order, first, faces); break;
+        case 8: manifold = match_manifold<8>(vc, rb, opposite_.data(), order, first, faces); break;
+        default: break;
+      }
+      if (manifold) {  // closed fans, as the generic walk below would find
+        if (split_vertices && faces != n) { several[a] = 1; continue; }
+        vertex_corner_[a] = vc.corners[rb + first];
+        fan_[a] = faces;
+        continue;
+      }
       if (n > kLocal) large.resize(2 * size_t(n));
       int32_t* right = n > kLocal ? large.data() : local;
       int32_t* left = right + n;
@@ -145,11 +202,9 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
         cut_kind[c] = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
       }
       // Left links are one-to-one, so the walk left meets the start again or ends.
-      int32_t first = 0;
       if (!open) first = right[0] >= 0 ? right[0] : 0;
       else
         for (int32_t x = left[0]; x >= 0 && x != 0; x = left[x]) first = x;
-      int32_t faces = 0;
       bool closed = false;
       for (int32_t x = first;;) {
         if (order && faces < n) order[rb + faces] = vc.corners[rb + x];
