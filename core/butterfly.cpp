@@ -228,9 +228,10 @@ const WeightTable kWeights;  // immutable after static initialisation
 // of a ring are summed side by side, weight after weight (each point still
 // adds its terms in the walk's order, so the bits are the same): the sums no
 // longer wait on one another, and each neighbour is converted once, not K times.
-// Valences 3-10 (all but a few vertices) have a function each, every loop's
-// count known to the compiler: unrolled, no loop exit to predict (valences vary
-// from vertex to vertex; the loops of one form for all mispredicted their exits).
+// Valences 3-10 (all but a few stored rings; valence 6 is never stored) have
+// a function each, every loop's count known to the compiler: unrolled, no loop
+// exit to predict (valences vary from vertex to vertex; the loops of one form
+// for all mispredicted their exits).
 template <int K>
 ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t* nb, float* out) {
   const double* w = kWeights.w[K];

@@ -83,7 +83,7 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
 // Otherwise |right| is a permutation (two entries matching the same one would
 // share their next vertex), so the walk from |first| is a cycle of |faces|
 // <= N steps; order entries past it are written too, never read (a fan order
-// is read for a vertex whose fan has as many faces as it has corners).
+// is read only as far as the fan's recorded size, |faces|).
 template <int N>
 inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order, int32_t& first,
                            int32_t& faces) {

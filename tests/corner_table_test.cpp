@@ -75,6 +75,44 @@ TEST(CornerTable, CutsNonManifoldAndConflicts) {
 }
 
 
+// Two closed tetrahedra touching at vertex 0: its six corners form two closed
+// fans of three (each edge matched once each way, so the unrolled path of
+// runs of 3-8 corners takes it). Split, it becomes two vertices of one fan
+// each; unsplit, it keeps one corner and records the fan that corner starts,
+// in walk order.
+TEST(CornerTable, TwoClosedFansAtOneVertex) {
+  Mesh base;
+  base.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, -1, 0, 0, 0, -1, 0, 0, 0, -1};
+  base.corner_vertex = {0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3,   // tetrahedron (0, 1, 2, 3)
+                        0, 5, 4, 0, 4, 6, 0, 6, 5, 4, 5, 6};  // tetrahedron (0, 4, 5, 6)
+  base.face_group.assign(8, 0);
+  base.materialize();
+  for (int threads : {1, 2}) {
+    Mesh m = base;
+    CornerTable ct;
+    const TopologyReport rep = ct.build(m, true, threads);
+    EXPECT_EQ(rep.split_vertices, 1);
+    EXPECT_EQ(rep.boundary_edges, 0);
+    ASSERT_EQ(m.num_vertices(), 8);
+    for (int32_t v : {0, 7}) {
+      EXPECT_EQ(ct.fans()[v], 3) << v;
+      int32_t n = 0, c = ct.vertex_corner(v);
+      do { ++n; ASSERT_EQ(m.corner_vertex[c], v); c = ct.swing_right(c); } while (c != ct.vertex_corner(v) && n < 10);
+      EXPECT_EQ(n, 3) << v;
+    }
+    Mesh u = base;
+    CornerTable unsplit;
+    unsplit.build(u, false, threads, true);
+    EXPECT_EQ(u.num_vertices(), 7);
+    EXPECT_EQ(unsplit.fans()[0], 3);
+    const int32_t* order = unsplit.fan_order(0);
+    ASSERT_NE(order, nullptr);
+    int32_t c = unsplit.vertex_corner(0);
+    for (int j = 0; j < 3; ++j, c = unsplit.swing_right(c)) EXPECT_EQ(order[j], c) << j;
+    EXPECT_EQ(c, unsplit.vertex_corner(0));
+  }
+}
+
 // The statistics' fast paths (single-precision normals, polynomial atan2, the
 // tangent form of the smallest angle) against exact angles.
 TEST(Angles, TriangleQualityMatchesExactSmallestAngles) {
