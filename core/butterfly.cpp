@@ -120,7 +120,7 @@ void carry_rings(RingTable& rings) {
   const int64_t n = int64_t(rings.corner.size()) - kRingPad;
   for (int64_t i = 0; i < n; ++i) {
     const int32_t x = rings.corner[i];
-    if (x >= 0) rings.corner[i] = 3 * (4 * (x / 3) + x % 3) + x % 3;
+    if (x >= 0) rings.corner[i] = kept_child_corner(x);
   }
   Array<int32_t>().swap(rings.neighbour);
   Array<float>().swap(rings.point);

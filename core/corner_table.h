@@ -30,6 +30,12 @@ inline int32_t prev_corner(int32_t c) {
   return c - 1 + 3 * int32_t((r - 1u) >> 31);  // r == 0: on to the face's last corner
 }
 
+// Uniform 1:4 split, children of face f numbered 4f+j (child j < 3 keeps the
+// parent's corner j, child 3 is the centre): where parent corner c, at a kept
+// vertex, lands (corner k of face f becomes corner k of child k). The rings and
+// the vertices' corners follow their corners through a level with it.
+inline int32_t kept_child_corner(int32_t c) { return 3 * (4 * (c / 3) + c % 3) + c % 3; }
+
 // Bit i set when p[i] == x, for i < n <= 8. Reads 8 entries whatever n is (the
 // caller pads its arrays): one SSE2 compare instead of a branch per entry,
 // whose outcome varies from call to call and was mispredicted.

@@ -331,7 +331,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   if (connectivity) parallel_for(nv, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t c = vc[v];
-      if (c >= 0) vc[v] = 3 * (4 * (c / 3) + c % 3) + c % 3;
+      if (c >= 0) vc[v] = kept_child_corner(c);
     }
   });
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
