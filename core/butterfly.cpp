@@ -527,6 +527,23 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
     wv[i] = m.cv[o];
   }
   // 1/2 (v1 + v2) + 1/8 (a + b) - 1/16 (w1 + w2 + w3 + w4), in double.
+#if defined(__SSE2__)
+  // x and y as a pair of doubles, z alone: the same sums in the same order.
+  struct P { __m128d xy, z; };
+  auto load = [positions](int32_t v) {
+    const float* p = positions + 3 * size_t(v);
+    return P{_mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(p)))),
+             _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
+  };
+  auto add = [](P a, P b) { return P{_mm_add_pd(a.xy, b.xy), _mm_add_sd(a.z, b.z)}; };
+  auto mul = [](double s, P a) { return P{_mm_mul_pd(_mm_set1_pd(s), a.xy), _mm_mul_sd(_mm_set_sd(s), a.z)}; };
+  const P e = add(load(v1), load(v2)), f = add(load(m.cv[c]), load(m.cv[d]));
+  const P g = add(add(add(load(wv[0]), load(wv[1])), load(wv[2])), load(wv[3]));
+  const P r = add(add(mul(0.5, e), mul(0.125, f)), mul(-1.0 / 16.0, g));
+  _mm_store_sd(reinterpret_cast<double*>(out), _mm_castps_pd(_mm_cvtpd_ps(r.xy)));
+  _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), r.z));
+  return true;
+#endif
   const float* q[8] = {positions + 3 * size_t(v1),    positions + 3 * size_t(v2),
                        positions + 3 * size_t(m.cv[c]), positions + 3 * size_t(m.cv[d]),
                        positions + 3 * size_t(wv[0]), positions + 3 * size_t(wv[1]),

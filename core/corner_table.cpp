@@ -91,16 +91,20 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   const int32_t* nexts = vc.nexts.data() + rb;
   const int32_t* prevs = vc.prevs.data() + rb;
   int32_t right[8];
-  unsigned bad = 0;
+  unsigned bad = 0, matched = 0;
   for (int i = 0; i < N; ++i) {
     const int32_t b = nexts[i];
-    const unsigned r = equal_mask8(prevs, b, N), s = equal_mask8(nexts, b, N);
-    bad |= (r & (r - 1)) | (s ^ (1u << i)) | unsigned(r == 0);
+    const unsigned r = equal_mask8(prevs, b, N);
+    bad |= (r & (r - 1)) | unsigned(r == 0);
     const int m = __builtin_ctz(r | 0x80u);  // 7 when r == 0 (then bad)
+    matched |= 1u << m;
     opposite[prev_corner(corners[i])] = next_corner(corners[m]);
     right[m] = i;
   }
-  if (bad) return false;
+  // Each b -> a matched once; each a -> b occurring once is then the same as
+  // every entry being matched (two entries with the same next b would match
+  // the same entry, leaving another unmatched).
+  if (bad | (matched ^ ((1u << N) - 1))) return false;
   first = right[0];
   int32_t x = first, count = 0;
   bool back = false;

@@ -6,9 +6,100 @@
 
 #if defined(__linux__)
 #include <sys/mman.h>
+#include <unistd.h>
+
+#include <mutex>
+#endif
+
+#if defined(__linux__)
+extern "C" char end;  // the end of the program's data (end(3))
 #endif
 
 namespace iteas {
+
+#if defined(__linux__)
+namespace {
+
+// Stretches of the main heap (between the program break at start-up and now)
+// that prepare_pages has found or made resident. A process that refines one
+// mesh after another gets the same blocks back from its allocator run after
+// run, and asking the kernel again each time (mincore, a system call of about
+// 1 µs on this kind of virtual machine) was a tenth of a small level. Pages
+// of the main heap leave only when the break comes down (trimming) or when
+// the process says so (forget_resident_memory, after malloc_trim): the ranges
+// are dropped whenever the break is not where it was when they were recorded.
+// Blocks elsewhere (mapped ones, other threads' arenas) are asked about
+// every time, as before. A wrong answer costs only speed (pages then fault
+// one by one, or a resident block is walked), never correctness.
+class ResidentRanges {
+ public:
+  bool covers(uintptr_t b, uintptr_t e) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (!current()) return false;
+    for (int i = 0; i < n_; ++i)
+      if (lo_[i] <= b && e <= hi_[i]) return true;
+    return false;
+  }
+  void add(uintptr_t b, uintptr_t e) {
+    std::lock_guard<std::mutex> lock(mu_);
+    current();
+    // Merge with every range it overlaps or touches, keep the rest.
+    int k = 0;
+    for (int i = 0; i < n_; ++i) {
+      if (hi_[i] < b || e < lo_[i]) {
+        lo_[k] = lo_[i];
+        hi_[k] = hi_[i];
+        ++k;
+        continue;
+      }
+      b = std::min(b, lo_[i]);
+      e = std::max(e, hi_[i]);
+    }
+    n_ = k;
+    if (n_ == kMax) n_ = 0;  // full: start over
+    lo_[n_] = b;
+    hi_[n_] = e;
+    ++n_;
+  }
+  void forget() {
+    std::lock_guard<std::mutex> lock(mu_);
+    n_ = 0;
+  }
+  // Is [b, e) in the main heap (brk memory) as it is now?
+  bool in_heap(uintptr_t b, uintptr_t e) const { return b >= base_ && e <= brk_now(); }
+
+ private:
+  static uintptr_t brk_now() { return reinterpret_cast<uintptr_t>(sbrk(0)); }  // glibc: no system call
+  // False (and the ranges dropped) when the break has moved since they were recorded.
+  bool current() {
+    const uintptr_t now = brk_now();
+    if (now == brk_) return true;
+    brk_ = now;
+    n_ = 0;
+    return false;
+  }
+  static constexpr int kMax = 32;
+  std::mutex mu_;
+  // The heap starts above the program's data (its end is the linker's |end|).
+  const uintptr_t base_ = reinterpret_cast<uintptr_t>(&end);
+  uintptr_t brk_ = 0;
+  int n_ = 0;
+  uintptr_t lo_[kMax] = {}, hi_[kMax] = {};
+};
+
+ResidentRanges& resident() {
+  static ResidentRanges* r = new ResidentRanges();  // never destroyed: used by allocations at exit
+  return *r;
+}
+
+}  // namespace
+#endif
+
+void forget_resident_memory() {
+#if defined(__linux__)
+  resident().forget();
+#endif
+}
 
 void prepare_pages(void* p, size_t bytes) {
 #if defined(__linux__)
@@ -34,13 +125,17 @@ void prepare_pages(void* p, size_t bytes) {
   // One call asks about the last pages: resident there means the block came
   // from memory the allocator kept (heap blocks are carved upwards), fresh
   // means a new mapping or a heap grown for it.
+  // Blocks of the main heap already known resident are not asked about.
+  ResidentRanges& known = resident();
+  const bool heap = known.in_heap(b, e);
+  if (heap && known.covers(b, e)) return;
   constexpr uintptr_t kProbe = 64;
   const uintptr_t from = std::max(b, e - kProbe * kPage);
   unsigned char v[kProbe];
-  if (mincore(reinterpret_cast<void*>(from), e - from, v) == 0 &&
-      std::all_of(v, v + (e - from) / kPage, [](unsigned char x) { return (x & 1) != 0; }))
-    return;
-  madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
+  if (!(mincore(reinterpret_cast<void*>(from), e - from, v) == 0 &&
+        std::all_of(v, v + (e - from) / kPage, [](unsigned char x) { return (x & 1) != 0; })))
+    madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
+  if (heap) known.add(b, e);
 #endif
 #else
   (void)p;

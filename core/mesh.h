@@ -33,6 +33,10 @@ namespace iteas {
 constexpr size_t kPrefaultBytes = 8 * 1024;
 constexpr size_t kHugePageBytes = size_t(2) << 20;
 void prepare_pages(void* p, size_t bytes);
+// Tells prepare_pages that the allocator may have given freed pages back to
+// the system (after malloc_trim): blocks it had found resident are asked
+// about again.
+void forget_resident_memory();
 
 template <typename T>
 struct NoInitAllocator : std::allocator<T> {

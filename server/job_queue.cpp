@@ -4,6 +4,7 @@
 
 #include <limits>
 
+#include "core/mesh.h"
 #include "io/memory_budget.h"
 
 namespace iteas {
@@ -245,6 +246,7 @@ void JobQueue::work() {
     }
     // Give the job's freed pages back, so RSS follows the heap down.
     malloc_trim(0);
+    forget_resident_memory();
   }
 }
 
