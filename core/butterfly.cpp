@@ -235,6 +235,38 @@ const WeightTable kWeights;  // immutable after static initialisation
 template <int K>
 ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t* nb, float* out) {
   const double* w = kWeights.w[K];
+#if defined(__SSE2__)
+  // The same sums in packed doubles: x and y of a point as a pair, the z of
+  // two neighbouring points as a pair (the last pair of an odd valence
+  // carries one more sum, never stored). Lanes round as scalars do.
+  __m128d xy[2 * K];
+  alignas(16) double z[2 * K];
+  for (int j = 0; j < K; ++j) {
+    const float* p = pos + 3 * size_t(nb[j]);
+    xy[j] = xy[j + K] = _mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(p))));
+    z[j] = z[j + K] = double(p[2]);
+  }
+  constexpr int kPairs = (K + 1) / 2;
+  __m128d sxy[K], sz[kPairs];
+  const __m128d cxy = _mm_add_pd(_mm_setzero_pd(), _mm_mul_pd(_mm_set1_pd(0.75), _mm_cvtps_pd(_mm_castpd_ps(
+                                                       _mm_load_sd(reinterpret_cast<const double*>(x))))));
+  const __m128d cz = _mm_set1_pd(0.0 + 0.75 * double(x[2]));
+  for (int i = 0; i < K; ++i) sxy[i] = cxy;
+  for (int i = 0; i < kPairs; ++i) sz[i] = cz;
+  for (int j = 0; j < K; ++j) {
+    const double s = w[j];
+    if (s == 0.0) continue;  // valence 4's odd weights: a fixed outcome per j, predicted
+    const __m128d sv = _mm_set1_pd(s);
+    for (int i = 0; i < K; ++i) sxy[i] = _mm_add_pd(sxy[i], _mm_mul_pd(sv, xy[i + j]));
+    for (int i = 0; i < kPairs; ++i) sz[i] = _mm_add_pd(sz[i], _mm_mul_pd(sv, _mm_loadu_pd(z + 2 * i + j)));
+  }
+  for (int i = 0; i < K; ++i) {
+    _mm_store_sd(reinterpret_cast<double*>(out + 3 * i), _mm_castps_pd(_mm_cvtpd_ps(sxy[i])));
+    const __m128d zz = i % 2 ? _mm_unpackhi_pd(sz[i / 2], sz[i / 2]) : sz[i / 2];
+    out[3 * i + 2] = _mm_cvtss_f32(_mm_cvtsd_ss(_mm_setzero_ps(), zz));
+  }
+  return;
+#endif
   double ring[3][2 * K], sum[3][K];
   // The ring twice over: point i's j-th term is ring[i + j].
   for (int j = 0; j < K; ++j)
