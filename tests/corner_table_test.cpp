@@ -75,6 +75,29 @@ TEST(CornerTable, CutsNonManifoldAndConflicts) {
 }
 
 
+// Vertex 0's three corners: edge 0->1 twice (faces 0 and 1), 1->0 once (face
+// 2, the reverse of face 0). Every edge into 0 then has exactly one reverse,
+// yet two of them match the same corner: the unrolled path for runs of 3-8
+// must hand the run on (edge (0,1) is cut as non-manifold) instead of
+// pairing both with it.
+TEST(CornerTable, DoubledEdgeInAShortRun) {
+  Mesh m;
+  m.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1};
+  m.corner_vertex = {0, 1, 2, 0, 1, 3, 0, 2, 1};
+  m.face_group.assign(3, 0);
+  m.materialize();
+  const test::EdgeFacts brute = test::edge_facts(m);
+  for (int threads : {1, 2}) {
+    CornerTable ct;
+    const TopologyReport rep = ct.build(m, false, threads);
+    EXPECT_EQ(rep.non_manifold_edges, 1);
+    EXPECT_EQ(brute.non_manifold, 1);
+    EXPECT_EQ(rep.boundary_edges, brute.boundary_corners);
+    for (int32_t c = 0; c < ct.num_corners(); ++c)
+      if (ct.opposite(c) >= 0) EXPECT_EQ(ct.opposite(ct.opposite(c)), c) << "corner " << c;
+  }
+}
+
 // Two closed tetrahedra touching at vertex 0: its six corners form two closed
 // fans of three (each edge matched once each way, so the unrolled path of
 // runs of 3-8 corners takes it). Split, it becomes two vertices of one fan
