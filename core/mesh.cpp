@@ -20,8 +20,8 @@ namespace iteas {
 #if defined(__linux__)
 namespace {
 
-// Stretches of the main heap (between the program break at start-up and now)
-// that prepare_pages has found or made resident. A process that refines one
+// Stretches of the main heap (between the end of the program's data and the
+// program break) that prepare_pages has found or made resident. A process that refines one
 // mesh after another gets the same blocks back from its allocator run after
 // run, and asking the kernel again each time (mincore, a system call of about
 // 1 µs on this kind of virtual machine) was a tenth of a small level. Pages
