@@ -243,13 +243,13 @@ ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t
   alignas(16) double z[2 * K];
   for (int j = 0; j < K; ++j) {
     const float* p = pos + 3 * size_t(nb[j]);
-    xy[j] = xy[j + K] = _mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(p))));
+    xy[j] = xy[j + K] = _mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p))));
     z[j] = z[j + K] = double(p[2]);
   }
   constexpr int kPairs = (K + 1) / 2;
   __m128d sxy[K], sz[kPairs];
-  const __m128d cxy = _mm_add_pd(_mm_setzero_pd(), _mm_mul_pd(_mm_set1_pd(0.75), _mm_cvtps_pd(_mm_castpd_ps(
-                                                       _mm_load_sd(reinterpret_cast<const double*>(x))))));
+  const __m128d cxy = _mm_add_pd(_mm_setzero_pd(), _mm_mul_pd(_mm_set1_pd(0.75), _mm_cvtps_pd(_mm_castsi128_ps(
+                                                       _mm_loadl_epi64(reinterpret_cast<const __m128i*>(x))))));
   const __m128d cz = _mm_set1_pd(0.0 + 0.75 * double(x[2]));
   for (int i = 0; i < K; ++i) sxy[i] = cxy;
   for (int i = 0; i < kPairs; ++i) sz[i] = cz;
@@ -261,7 +261,7 @@ ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t
     for (int i = 0; i < kPairs; ++i) sz[i] = _mm_add_pd(sz[i], _mm_mul_pd(sv, _mm_loadu_pd(z + 2 * i + j)));
   }
   for (int i = 0; i < K; ++i) {
-    _mm_store_sd(reinterpret_cast<double*>(out + 3 * i), _mm_castps_pd(_mm_cvtpd_ps(sxy[i])));
+    _mm_storel_epi64(reinterpret_cast<__m128i*>(out + 3 * i), _mm_castps_si128(_mm_cvtpd_ps(sxy[i])));
     const __m128d zz = i % 2 ? _mm_unpackhi_pd(sz[i / 2], sz[i / 2]) : sz[i / 2];
     out[3 * i + 2] = _mm_cvtss_f32(_mm_cvtsd_ss(_mm_setzero_ps(), zz));
   }
@@ -564,7 +564,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   struct P { __m128d xy, z; };
   auto load = [positions](int32_t v) {
     const float* p = positions + 3 * size_t(v);
-    return P{_mm_cvtps_pd(_mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(p)))),
+    return P{_mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p)))),
              _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
   };
   auto add = [](P a, P b) { return P{_mm_add_pd(a.xy, b.xy), _mm_add_sd(a.z, b.z)}; };
@@ -572,7 +572,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   const P e = add(load(v1), load(v2)), f = add(load(m.cv[c]), load(m.cv[d]));
   const P g = add(add(add(load(wv[0]), load(wv[1])), load(wv[2])), load(wv[3]));
   const P r = add(add(mul(0.5, e), mul(0.125, f)), mul(-1.0 / 16.0, g));
-  _mm_store_sd(reinterpret_cast<double*>(out), _mm_castps_pd(_mm_cvtpd_ps(r.xy)));
+  _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(_mm_cvtpd_ps(r.xy)));
   _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), r.z));
   return true;
 #endif
