@@ -222,6 +222,17 @@ struct WeightTable {
 };
 const WeightTable kWeights;  // immutable after static initialisation
 
+#if defined(__SSE2__)
+// A point's x and y (two floats, any alignment) as a pair of doubles, and a
+// pair rounded back to two floats. Lanes round as scalars do, so packed sums
+// keep the bits of the same sums done one coordinate at a time.
+ITEAS_INLINE __m128d load_xy(const float* p) {
+  return _mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p))));
+}
+ITEAS_INLINE void store_xy(float* p, __m128d xy) {
+  _mm_storel_epi64(reinterpret_cast<__m128i*>(p), _mm_castps_si128(_mm_cvtpd_ps(xy)));
+}
+
 // The extraordinary rule of each stored ring's vertex for each of its edges,
 // summed as PointSum sums it (3/4 v first, then the ring in order, zero
 // weights skipped), so a rule read from here has the walk's bits. The K points
@@ -231,25 +242,23 @@ const WeightTable kWeights;  // immutable after static initialisation
 // Valences 3-10 (all but a few stored rings; valence 6 is never stored) have
 // a function each, every loop's count known to the compiler: unrolled, no loop
 // exit to predict (valences vary from vertex to vertex; the loops of one form
-// for all mispredicted their exits).
+// for all mispredicted their exits). The sums are packed: x and y of a point
+// as a pair, the z of two neighbouring points as a pair (the last pair of an
+// odd valence carries one more sum, never stored). Without SSE2 every valence
+// takes ring_points_any, whose sums are the same.
 template <int K>
 ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t* nb, float* out) {
   const double* w = kWeights.w[K];
-#if defined(__SSE2__)
-  // The same sums in packed doubles: x and y of a point as a pair, the z of
-  // two neighbouring points as a pair (the last pair of an odd valence
-  // carries one more sum, never stored). Lanes round as scalars do.
-  __m128d xy[2 * K];
+  __m128d xy[2 * K];  // the ring twice over: point i's j-th term is ring[i + j]
   alignas(16) double z[2 * K];
   for (int j = 0; j < K; ++j) {
     const float* p = pos + 3 * size_t(nb[j]);
-    xy[j] = xy[j + K] = _mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p))));
+    xy[j] = xy[j + K] = load_xy(p);
     z[j] = z[j + K] = double(p[2]);
   }
   constexpr int kPairs = (K + 1) / 2;
   __m128d sxy[K], sz[kPairs];
-  const __m128d cxy = _mm_add_pd(_mm_setzero_pd(), _mm_mul_pd(_mm_set1_pd(0.75), _mm_cvtps_pd(_mm_castsi128_ps(
-                                                       _mm_loadl_epi64(reinterpret_cast<const __m128i*>(x))))));
+  const __m128d cxy = _mm_add_pd(_mm_setzero_pd(), _mm_mul_pd(_mm_set1_pd(0.75), load_xy(x)));
   const __m128d cz = _mm_set1_pd(0.0 + 0.75 * double(x[2]));
   for (int i = 0; i < K; ++i) sxy[i] = cxy;
   for (int i = 0; i < kPairs; ++i) sz[i] = cz;
@@ -261,29 +270,12 @@ ITEAS_INLINE void ring_points_of(const float* pos, const float* x, const int32_t
     for (int i = 0; i < kPairs; ++i) sz[i] = _mm_add_pd(sz[i], _mm_mul_pd(sv, _mm_loadu_pd(z + 2 * i + j)));
   }
   for (int i = 0; i < K; ++i) {
-    _mm_storel_epi64(reinterpret_cast<__m128i*>(out + 3 * i), _mm_castps_si128(_mm_cvtpd_ps(sxy[i])));
+    store_xy(out + 3 * i, sxy[i]);
     const __m128d zz = i % 2 ? _mm_unpackhi_pd(sz[i / 2], sz[i / 2]) : sz[i / 2];
     out[3 * i + 2] = _mm_cvtss_f32(_mm_cvtsd_ss(_mm_setzero_ps(), zz));
   }
-  return;
-#endif
-  double ring[3][2 * K], sum[3][K];
-  // The ring twice over: point i's j-th term is ring[i + j].
-  for (int j = 0; j < K; ++j)
-    for (int k = 0; k < 3; ++k) ring[k][j] = ring[k][j + K] = double(pos[3 * size_t(nb[j]) + k]);
-  for (int k = 0; k < 3; ++k) {
-    const double c = 0.0 + 0.75 * double(x[k]);
-    for (int i = 0; i < K; ++i) sum[k][i] = c;
-  }
-  for (int j = 0; j < K; ++j) {
-    const double s = w[j];
-    if (s == 0.0) continue;  // valence 4's odd weights: a fixed outcome per j, predicted
-    for (int k = 0; k < 3; ++k)
-      for (int i = 0; i < K; ++i) sum[k][i] += s * ring[k][i + j];
-  }
-  for (int i = 0; i < K; ++i)
-    for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sum[k][i]);
 }
+#endif
 
 // Any valence: the ring's points one after another.
 void ring_points_any(const float* pos, const float* x, int K, const int32_t* nb, float* out) {
@@ -312,16 +304,19 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
       const int32_t* nb = rings.neighbour.data() + off;
       const float* x = pos + 3 * size_t(v);
       float* out = rings.point.data() + 3 * size_t(off);
+#if defined(__SSE2__)
       switch (K) {
-        case 3: ring_points_of<3>(pos, x, nb, out); break;
-        case 4: ring_points_of<4>(pos, x, nb, out); break;
-        case 5: ring_points_of<5>(pos, x, nb, out); break;
-        case 7: ring_points_of<7>(pos, x, nb, out); break;
-        case 8: ring_points_of<8>(pos, x, nb, out); break;
-        case 9: ring_points_of<9>(pos, x, nb, out); break;
-        case 10: ring_points_of<10>(pos, x, nb, out); break;
-        default: ring_points_any(pos, x, K, nb, out); break;
+        case 3: ring_points_of<3>(pos, x, nb, out); continue;
+        case 4: ring_points_of<4>(pos, x, nb, out); continue;
+        case 5: ring_points_of<5>(pos, x, nb, out); continue;
+        case 7: ring_points_of<7>(pos, x, nb, out); continue;
+        case 8: ring_points_of<8>(pos, x, nb, out); continue;
+        case 9: ring_points_of<9>(pos, x, nb, out); continue;
+        case 10: ring_points_of<10>(pos, x, nb, out); continue;
+        default: break;
       }
+#endif
+      ring_points_any(pos, x, K, nb, out);
     }
   }, 256);
 }
@@ -564,18 +559,16 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   struct P { __m128d xy, z; };
   auto load = [positions](int32_t v) {
     const float* p = positions + 3 * size_t(v);
-    return P{_mm_cvtps_pd(_mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p)))),
-             _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
+    return P{load_xy(p), _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
   };
   auto add = [](P a, P b) { return P{_mm_add_pd(a.xy, b.xy), _mm_add_sd(a.z, b.z)}; };
   auto mul = [](double s, P a) { return P{_mm_mul_pd(_mm_set1_pd(s), a.xy), _mm_mul_sd(_mm_set_sd(s), a.z)}; };
   const P e = add(load(v1), load(v2)), f = add(load(m.cv[c]), load(m.cv[d]));
   const P g = add(add(add(load(wv[0]), load(wv[1])), load(wv[2])), load(wv[3]));
   const P r = add(add(mul(0.5, e), mul(0.125, f)), mul(-1.0 / 16.0, g));
-  _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(_mm_cvtpd_ps(r.xy)));
+  store_xy(out, r.xy);
   _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), r.z));
-  return true;
-#endif
+#else
   const float* q[8] = {positions + 3 * size_t(v1),    positions + 3 * size_t(v2),
                        positions + 3 * size_t(m.cv[c]), positions + 3 * size_t(m.cv[d]),
                        positions + 3 * size_t(wv[0]), positions + 3 * size_t(wv[1]),
@@ -585,6 +578,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
     const double g = ((double(q[4][k]) + double(q[5][k])) + double(q[6][k])) + double(q[7][k]);
     out[k] = float((0.5 * e + 0.125 * f) + (-1.0 / 16.0) * g);
   }
+#endif
   return true;
 }
 
