@@ -36,7 +36,7 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
       if (recorded && ct.fans()[v] != CornerTable::kUnknownFan) {
         const int32_t f = ct.fans()[v];
         out.valence[v] = f > 0 ? f : 1 - f;
-        out.complete[v] = f >= 3;
+        out.complete[v] = VertexClass::flags(f >= 3, out.valence[v]);
         continue;
       }
       int32_t faces = 0, c = first;
@@ -54,7 +54,7 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
       out.valence[v] = closed ? faces : faces + 1;
       // The extraordinary rules need a ring of 3 or more (a closed fan of two
       // faces, from a doubled triangle, would get weights that do not sum to 1).
-      out.complete[v] = closed && !has_sharp && faces >= 3;
+      out.complete[v] = VertexClass::flags(closed && !has_sharp && faces >= 3, out.valence[v]);
     }
   }, 512);  // a fan walk per vertex: smaller pieces than per-corner loops
 }
@@ -128,8 +128,12 @@ void carry_rings(RingTable& rings) {
 }
 
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {
-  for (size_t f = 0; f < green.size(); ++f)
-    if (green[f] == 2) --vclass.valence[mesh.corner_vertex[3 * f + 2]];
+  for (size_t f = 0; f < green.size(); ++f) {
+    if (green[f] != 2) continue;
+    const int32_t v = mesh.corner_vertex[3 * f + 2];
+    --vclass.valence[v];
+    vclass.complete[v] = VertexClass::flags(vclass.complete[v] != 0, vclass.valence[v]);
+  }
 }
 
 #define ITEAS_INLINE inline __attribute__((always_inline))
@@ -544,7 +548,7 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
   if (G && (m.green_of(c) | m.green_of(d))) return false;
   const int32_t nc = next_corner(c), pc = prev_corner(c), nd = next_corner(d), pd = prev_corner(d);
   const int32_t v1 = m.cv[nc], v2 = m.cv[pc];
-  if (!(m.complete[v1] & m.complete[v2]) || m.valence[v1] != 6 || m.valence[v2] != 6) return false;
+  if ((m.complete[v1] & m.complete[v2]) != VertexClass::kRegular) return false;
   const int32_t x[4] = {pc, nc, pd, nd};
   int32_t wv[4];
   for (int i = 0; i < 4; ++i) {
@@ -604,7 +608,20 @@ void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positi
 void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
                       float* out) {
   with_view(ctx, [&](const auto& view) {
+    // The faces across a few edges ahead are asked for early: an edge's
+    // wings are read through its opposite (corner, opposite, its neighbours,
+    // their vertices, one load waiting on the other), and on large levels
+    // those faces are not in cache (level 4: about 6 % less time; 6 to 24
+    // edges ahead measured alike; also asking for the positions was slower).
+    constexpr int64_t kAhead = 12;
     for (int64_t i = 0; i < count; ++i) {
+      if (i + kAhead < count) {
+        const int32_t d = view.opp[corners[i + kAhead]];
+        if (d >= 0) {
+          __builtin_prefetch(view.opp + d);
+          __builtin_prefetch(view.cv + d);
+        }
+      }
       if (regular_point(view, corners[i], positions, out + 3 * i)) continue;
       PointSum sink{positions};
       rules(view, corners[i], sink);

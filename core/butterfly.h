@@ -20,7 +20,14 @@ struct StencilTerm {
 // Per-vertex facts the rules need, computed once per level.
 struct VertexClass {
   std::vector<int32_t> valence;   // number of incident edges
-  std::vector<uint8_t> complete;  // closed fan and no sharp (crease) edge
+  // Non-zero when the fan is closed and has no sharp (crease) edge; kRegular
+  // when besides the valence is 6 (the regular stencil's test, one byte per
+  // endpoint instead of two arrays).
+  std::vector<uint8_t> complete;
+  static constexpr uint8_t kComplete = 1, kRegular = 3;
+  static uint8_t flags(bool complete, int32_t valence) {
+    return complete ? (valence == 6 ? kRegular : kComplete) : 0;
+  }
 };
 
 // The rings of extraordinary vertices (complete, valence other than 6) with an
