@@ -20,9 +20,9 @@ struct StencilTerm {
 // Per-vertex facts the rules need, computed once per level.
 struct VertexClass {
   std::vector<int32_t> valence;   // number of incident edges
-  // Non-zero when the fan is closed and has no sharp (crease) edge; kRegular
-  // when besides the valence is 6 (the regular stencil's test, one byte per
-  // endpoint instead of two arrays).
+  // Non-zero when the fan is closed and has no sharp (crease) edge: kRegular
+  // when the valence is also 6, else kComplete (the regular stencil then
+  // tests one byte per endpoint instead of reading two arrays).
   std::vector<uint8_t> complete;
   static constexpr uint8_t kComplete = 1, kRegular = 3;
   static uint8_t flags(bool complete, int32_t valence) {
