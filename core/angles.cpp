@@ -126,9 +126,15 @@ ITEAS_SELECTS_VECTORISE static void sine_cosine(const float* const* __restrict n
 }
 
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads) {
-  // Fixed chunks of faces: each computes its faces' normals once (neighbours
-  // outside the chunk on the fly) and each edge's angle once, at its smaller
-  // corner, for both corners. Values equal normal_angle's bit for bit.
+  edge_angles(mesh, ct, theta, threads, CarriedAngles());
+}
+
+void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
+                 const CarriedAngles& carried) {
+  // Fixed chunks of faces: each computes the normals of its faces that have
+  // an edge to compute once (neighbours outside the chunk on the fly) and
+  // each edge's angle once, at its smaller corner, for both corners. Values
+  // equal normal_angle's bit for bit.
   // The NaN fill first, on all threads (a corner's value may be written from
   // another chunk, that of its opposite).
   const int32_t nc = ct.num_corners();
@@ -139,26 +145,46 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   constexpr int64_t kFaces = 4096;
   const int64_t nf = nc / 3, chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
+  const int32_t* cv = mesh.corner_vertex.data();
+  // The angle carried for corner c, or -1 when there is none (an angle is
+  // never negative; a carried NaN is a zero-area face's).
+  auto carried_at = [&](int32_t c) -> float {
+    if (!carried.theta) return -1.0f;
+    const int32_t from = carried.kept_from[c / 3];
+    if (from < 0 || (carried.touched[cv[next_corner(c)]] | carried.touched[cv[prev_corner(c)]])) return -1.0f;
+    return carried.theta[3 * size_t(from) + size_t(c % 3)];
+  };
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
-    Array<double> cache(3 * kFaces);  // written before read, as valid
-    Array<uint8_t> valid(kFaces);
+    Array<double> cache(3 * kFaces);  // written before read, as state says
+    Array<uint8_t> state(kFaces);     // per face of the chunk: 0 zero area, 1 normal cached, 2 not yet computed
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
-      for (int64_t f = f0; f < f1; ++f) valid[f - f0] = face_normal(mesh, int32_t(f), &cache[3 * size_t(f - f0)]);
+      std::fill(state.data(), state.data() + (f1 - f0), uint8_t(2));
+      // A face's normal, computed when an edge first needs it.
+      auto normal = [&](int64_t f) -> const double* {
+        uint8_t& st = state[f - f0];
+        if (st == 2) st = uint8_t(face_normal(mesh, int32_t(f), &cache[3 * size_t(f - f0)]));
+        return st ? &cache[3 * size_t(f - f0)] : nullptr;
+      };
       for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
         const int32_t d = opp[c];
         if (d < c) continue;  // boundary (-1), or done at the smaller corner
-        if (!valid[c / 3 - f0]) continue;
+        const float t = carried_at(c);
+        if (!(t < 0.0f)) {
+          theta[c] = theta[d] = t;
+          continue;
+        }
+        const double* nf1 = normal(c / 3);
+        if (!nf1) continue;
         const int64_t g = d / 3;
         double far[3];
         const double* ng = far;
         if (g < f1) {
-          if (!valid[g - f0]) continue;
-          ng = &cache[3 * size_t(g - f0)];
+          if (!(ng = normal(g))) continue;
         } else if (!face_normal(mesh, int32_t(g), far)) {
           continue;
         }
-        theta[c] = theta[d] = angle_between(&cache[3 * size_t(c / 3 - f0)], ng);
+        theta[c] = theta[d] = angle_between(nf1, ng);
       }
     }
   });

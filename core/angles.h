@@ -24,6 +24,19 @@ float normal_angle(const Mesh& mesh, int32_t f, int32_t g);
 // and zero-area faces). Both corners of an edge get the same value.
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads = 1);
 
+// What edge_angles may take from the level before instead of computing it
+// (all per the mesh given, as refine's adaptive levels record them): corner
+// k of face f with kept_from[f] >= 0 and neither end touched has the angle
+// theta[3 * kept_from[f] + k] had. (Both faces of such an edge are then kept
+// unchanged, their normals the same bits, in the same order.)
+struct CarriedAngles {
+  const float* theta = nullptr;
+  const int32_t* kept_from = nullptr;
+  const uint8_t* touched = nullptr;
+};
+void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
+                 const CarriedAngles& carried);
+
 struct AngleSummary {
   int64_t edges = 0;  // interior edges with a theta
   double mean = 0, max = 0;

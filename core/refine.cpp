@@ -103,13 +103,42 @@ struct State {
   // Adaptive modes: the squared sine of the smallest angle new triangles may
   // have (half the input's smallest angle); 0 = no guard (uniform mode).
   double floor_sin2 = 0;
+  // Angles and deviations carried to the next adaptive level. An edge's θ
+  // reads its two faces; its Butterfly point (and so its deviation) only the
+  // faces round its two ends (their vertices, positions, green flags and the
+  // sharpness of the edges at those ends); old vertices never move. So an
+  // edge whose ends no changed face touches has the θ and deviation it had.
+  // |theta|, |deviation|: per corner of the level just refined (deviation -1:
+  // not computed; empty when no tolerance or flat limit is in use);
+  // |kept_from|: per face of the new level, the face of that level it copies
+  // unchanged (same corners in the same order; kept faces keep their relative
+  // order, so an edge's first corner, from which it is computed, is the same
+  // face's), or -1; |touched|: per vertex of the new level, 1 when a face
+  // round it changed (or it is new).
+  struct Carried {
+    Array<float> theta;
+    std::vector<float> deviation;
+    std::vector<int32_t> kept_from;
+    std::vector<uint8_t> touched;
+    bool valid = false;
+  } carried;
+  // s.theta is that of the current mesh (computed for the input's statistics).
+  bool theta_current = false;
+  // The input's corner table split vertices: it was matched before they were
+  // split, so an edge there may be cut by a face that no longer shares its
+  // ends (a doubled triangle's), which the next level's table no longer
+  // sees. Nothing is carried from that level.
+  bool input_split = false;
+  bool carry = true;  // RefineHooks::carry
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) +
                     vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) +
-                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) + extra;
+                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) +
+                    vbytes(s.carried.theta) + vbytes(s.carried.deviation) + vbytes(s.carried.kept_from) +
+                    vbytes(s.carried.touched) + extra;
   s.peak = std::max(s.peak, b);
 }
 
@@ -143,8 +172,19 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   s.bctx.sharp = &s.sharp;
   s.bctx.tension = o.tension;
   s.bctx.green = &s.green;
-  if (need_theta) edge_angles(m, s.ct, s.theta, s.threads);
-  else Array<float>().swap(s.theta);
+  if (need_theta && !s.theta_current) {
+    CarriedAngles from;
+    if (s.carried.valid && !s.carried.theta.empty()) {
+      from.theta = s.carried.theta.data();
+      from.kept_from = s.carried.kept_from.data();
+      from.touched = s.carried.touched.data();
+    }
+    edge_angles(m, s.ct, s.theta, s.threads, from);
+  } else if (!need_theta) {
+    Array<float>().swap(s.theta);
+  }
+  s.theta_current = false;
+  Array<float>().swap(s.carried.theta);
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
   // Without angles there are no creases (the uniform path without
@@ -598,6 +638,8 @@ struct Emitter {
   std::vector<int32_t> fg;
   std::vector<uint8_t> green;
   LevelStats& ls;
+  // Per emitted face, the parent it copies unchanged, or -1 (State::Carried).
+  std::vector<int32_t> from;
   // Stall detection (when on): the born value of every emitted face — the
   // parent's bend for red children, inherited for kept faces and greens.
   struct Born {
@@ -607,7 +649,8 @@ struct Emitter {
     bool in_red = false;
   } born;
 
-  void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag) {
+  void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag, int32_t kept_from = -1) {
+    from.push_back(kept_from);
     if (born.on) born.values.push_back(born.in_red ? born.red : born.kept);
     for (int k = 0; k < 3; ++k) {
       cv.push_back(v[k]);
@@ -618,9 +661,11 @@ struct Emitter {
   }
   // A face whose edges opposite local corner k split at mid[k] (-1: not):
   // none -> kept; one -> green bisection; three -> red 1 -> 4.
-  void split(const int32_t v[3], const int32_t w[3], const int32_t mid[3], const int32_t mw[3], int32_t g) {
+  // |parent|: the face split (for a kept one's record), or -1.
+  void split(const int32_t v[3], const int32_t w[3], const int32_t mid[3], const int32_t mw[3], int32_t g,
+             int32_t parent = -1) {
     const int sc = (mid[0] >= 0) + (mid[1] >= 0) + (mid[2] >= 0);
-    if (sc == 0) { face(v, w, g, 0); return; }
+    if (sc == 0) { face(v, w, g, 0, parent); return; }
     if (sc == 1) {
       const int k = mid[0] >= 0 ? 0 : (mid[1] >= 0 ? 1 : 2);
       const int k1 = (k + 1) % 3, k2 = (k + 2) % 3;
@@ -696,7 +741,15 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   }
 
   // Topology: emit the new faces in parent order.
-  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, {}};
+  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, {}, {}};
+  // What the next level may reuse (State::Carried).
+  State::Carried& carried = s.carried;
+  em.from.reserve(plan.triangles);
+  carried.touched.assign(size_t(next_v), 0);
+  std::fill(carried.touched.begin() + nv, carried.touched.end(), uint8_t(1));
+  auto touch = [&](int32_t f) {
+    for (int k = 0; k < 3; ++k) carried.touched[m.corner_vertex[3 * size_t(f) + k]] = 1;
+  };
   em.cv.reserve(size_t(plan.triangles) * 3);
   if (wedges) em.cw.reserve(size_t(plan.triangles) * 3);
   em.green.reserve(plan.triangles);
@@ -720,10 +773,12 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
         for (int32_t h : {f, f2}) {
           int32_t v[3], w[3];
           for (int k = 0; k < 3; ++k) { v[k] = m.corner_vertex[3 * h + k]; w[k] = m.wedge_of(3 * h + k); }
-          em.face(v, w, m.group_of(h), h == f ? 1 : 2);
+          em.face(v, w, m.group_of(h), h == f ? 1 : 2, h);
         }
         continue;
       }
+      touch(f);
+      touch(f2);
       // Merge back: parent (a, b, c) with the old midpoint m on (a, b).
       ++ls.greens_merged;
       ++ls.red_splits;
@@ -752,15 +807,20 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
       mid[k] = evert[3 * f + k];
       mw[k] = wedges ? ewedge[3 * f + k] : mid[k];
     }
-    em.split(v, w, mid, mw, g);
+    if (mid[0] >= 0 || mid[1] >= 0 || mid[2] >= 0) touch(f);
+    em.split(v, w, mid, mw, g, f);
   }
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(em.cv) + vbytes(em.cw) + vbytes(em.fg) +
-                      vbytes(em.green) + vbytes(plan.split) + vbytes(plan.merged));
+                      vbytes(em.green) + vbytes(plan.split) + vbytes(plan.merged) + vbytes(em.from));
   m.corner_vertex.swap(em.cv);
   if (wedges) m.corner_wedge.swap(em.cw);
   if (em.groups) m.face_group.swap(em.fg);
   s.green.swap(em.green);
   s.born.swap(em.born.values);
+  carried.kept_from.swap(em.from);
+  carried.theta.swap(s.theta);
+  carried.valid = s.carry && !s.input_split;
+  s.input_split = false;
   if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
   ls.vertices_added = next_v - nv;
   s.ct.build(m, false, s.threads);
@@ -923,12 +983,28 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     // Each edge once (from its first corner), for the faces that need it.
     const int32_t* opp = s.ct.opposites().data();
     auto needs = [&](int32_t c) { return c >= 0 && verdict[c / 3] >= kJudgeTolerance; };
-    std::vector<float> dev(nc, 0.0f);
+    // -1: not computed (a deviation is never negative).
+    std::vector<float> dev(nc, -1.0f);
+    State::Carried& carried = s.carried;
+    const bool reuse = carried.valid && !carried.deviation.empty();
+    const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
+    if (reuse) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+      for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
+        const int32_t from = carried.kept_from[f];
+        if (from < 0) continue;
+        for (int k = 0; k < 3; ++k) {
+          const int32_t c = 3 * f + k;
+          if (carried.touched[cv[next_corner(c)]] | carried.touched[cv[prev_corner(c)]]) continue;
+          dev[c] = carried.deviation[3 * size_t(from) + k];
+        }
+      }
+    }, 512);
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         const int32_t oc = opp[c];
         if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
+        if (dev[c] >= 0.0f && (oc < 0 || dev[oc] >= 0.0f)) continue;  // carried (on both sides)
         dev[c] = edge_deviation(s, m, c);
         if (oc >= 0) dev[oc] = dev[c];
       }
@@ -941,7 +1017,13 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         else verdict[f] = d > s.flat_limit ? kOverFlatLimit : kLeft;
       }
     }, 512);
+    carried.deviation.swap(dev);
+  } else {
+    std::vector<float>().swap(s.carried.deviation);
   }
+  s.carried.valid = false;  // until adaptive_level says how the next level derives from this one
+  std::vector<int32_t>().swap(s.carried.kept_from);
+  std::vector<uint8_t>().swap(s.carried.touched);
   selected.clear();
   for (int32_t f = 0; f < nf; ++f) {
     switch (verdict[f]) {
@@ -984,6 +1066,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   // The uniform path reads its first rings from the fans the table records.
   stats.topology = s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path);
   s.ring_limit = m.num_vertices();
+  s.input_split = stats.topology.split_vertices > 0;
+  s.carry = hooks.carry;
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
   const bool adaptive = o.mode != Mode::kUniform;
@@ -998,6 +1082,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     T_input = o.mode == Mode::kUniform ? summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean
                                        : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
     stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
+    s.theta_current = true;
     stats.quality_before = triangle_quality(m, s.threads);
   }
   stats.threshold = T_input;

@@ -63,6 +63,9 @@ struct RefineHooks {
   const std::atomic<bool>* cancel = nullptr;
   // Testing: refine uniform levels with the general adaptive path.
   bool force_adaptive_path = false;
+  // Testing: false recomputes every adaptive level's angles and deviations
+  // instead of carrying those of unchanged edges from the level before.
+  bool carry = true;
   // Benchmarks: false skips the smoothness and quality statistics of uniform
   // refinement (θ after each level, triangle angles before and after), to time
   // the subdivision alone. Adaptive modes need θ and compute it regardless.

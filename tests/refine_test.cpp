@@ -526,6 +526,48 @@ TEST(Refine, StatisticsOffGivesTheSameMesh) {
   EXPECT_GE(n, 20);
 }
 
+// Adaptive levels carry the angles and deviations of edges no changed face
+// touches; the result must be what computing them again gives, bit for bit,
+// with every option that feeds the stencils (creases, tension, greens kept
+// and merged, a per-level threshold). Each mesh also gets a doubled triangle,
+// whose vertices the input's table splits (its cut edges heal on the next
+// level's table).
+TEST(Refine, CarriedAnglesAndDeviationsAreTheRecomputedOnes) {
+  int n = 0, differ = 0;
+  for (const Case& c : cases(8000)) {
+    for (const bool doubled : {false, true}) {
+      Mesh in = c.mesh;
+      if (doubled) {
+        for (int k = 0; k < 3; ++k) in.corner_vertex.push_back(in.corner_vertex[k]);
+        if (!in.face_group.empty()) in.face_group.push_back(in.face_group[0]);
+        if (in.has_wedges()) for (int k = 0; k < 3; ++k) in.corner_wedge.push_back(in.corner_wedge[k]);
+      }
+      for (int variant = 0; variant < 3; ++variant) {
+        RefineOptions o = opts(Mode::kIteas, 3);
+        if (variant == 1) { o.crease_angle = 30; o.tension = 0.03; }
+        if (variant == 2) { o.threshold_scope = Scope::kLevel; o.threshold.kind = ThresholdSpec::Kind::kMedian; }
+        Mesh carried = in, fresh = in;
+        RefineStats st_carried, st_fresh;
+        RefineHooks h;
+        refine_mesh(carried, o, h, &st_carried);
+        h.carry = false;
+        refine_mesh(fresh, o, h, &st_fresh);
+        const bool same = same_mesh(carried, fresh) && st_carried.levels.size() == st_fresh.levels.size();
+        EXPECT_TRUE(same) << c.name << " doubled " << doubled << " variant " << variant;
+        for (size_t l = 0; same && l < st_carried.levels.size(); ++l) {
+          EXPECT_EQ(st_carried.levels[l].faces_within_tolerance, st_fresh.levels[l].faces_within_tolerance) << c.name;
+          EXPECT_EQ(st_carried.levels[l].faces_over_flat_limit, st_fresh.levels[l].faces_over_flat_limit) << c.name;
+          EXPECT_EQ(st_carried.levels[l].mean_theta_after, st_fresh.levels[l].mean_theta_after) << c.name;
+        }
+        differ += !same;
+        ++n;
+      }
+    }
+  }
+  EXPECT_GE(n, 60);
+  EXPECT_EQ(differ, 0);
+}
+
 TEST(Refine, CancellationIsHonoured) {
   const Mesh s = test::icosphere(3);
   std::atomic<bool> cancel{true};
