@@ -149,10 +149,8 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   // The angle carried for corner c, or -1 when there is none (an angle is
   // never negative; a carried NaN is a zero-area face's).
   auto carried_at = [&](int32_t c) -> float {
-    if (!carried.theta) return -1.0f;
-    const int32_t from = carried.kept_from[c / 3];
-    if (from < 0 || (carried.touched[cv[next_corner(c)]] | carried.touched[cv[prev_corner(c)]])) return -1.0f;
-    return carried.theta[3 * size_t(from) + size_t(c % 3)];
+    const int64_t from = carried.theta ? carried.source(cv, c) : -1;
+    return from < 0 ? -1.0f : carried.theta[from];
   };
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     Array<double> cache(3 * kFaces);  // written before read, as state says

@@ -33,6 +33,13 @@ struct CarriedAngles {
   const float* theta = nullptr;
   const int32_t* kept_from = nullptr;
   const uint8_t* touched = nullptr;
+  // Corner c's corner on the level before when its edge is carried, else -1
+  // (cv: the current corner -> vertex map). Also what refine's deviations use.
+  int64_t source(const int32_t* cv, int32_t c) const {
+    const int32_t from = kept_from[c / 3];
+    if (from < 0 || (touched[cv[next_corner(c)]] | touched[cv[prev_corner(c)]])) return -1;
+    return 3 * int64_t(from) + c % 3;
+  }
 };
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
                  const CarriedAngles& carried);

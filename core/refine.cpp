@@ -989,17 +989,17 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const bool reuse = carried.valid && !carried.deviation.empty();
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
-    if (reuse) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-      for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
-        const int32_t from = carried.kept_from[f];
-        if (from < 0) continue;
-        for (int k = 0; k < 3; ++k) {
-          const int32_t c = 3 * f + k;
-          if (carried.touched[cv[next_corner(c)]] | carried.touched[cv[prev_corner(c)]]) continue;
-          dev[c] = carried.deviation[3 * size_t(from) + k];
+    if (reuse) {
+      CarriedAngles edges;  // the same test of a carried edge as the angles'
+      edges.kept_from = carried.kept_from.data();
+      edges.touched = carried.touched.data();
+      parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+        for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
+          const int64_t from = edges.source(cv, c);
+          if (from >= 0) dev[c] = carried.deviation[from];
         }
-      }
-    }, 512);
+      }, 1536);
+    }
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         const int32_t oc = opp[c];
