@@ -165,6 +165,18 @@ void grow_wedges(Mesh& m, int64_t nw) {
   for (Channel& ch : m.channels) ch.data.resize(size_t(nw) * ch.components);
 }
 
+// s.theta for the current mesh (ct must be valid), each edge carried from the
+// level before where adaptive_level says it is unchanged.
+void current_angles(State& s, const Mesh& m) {
+  CarriedAngles from;
+  if (s.carried.valid && !s.carried.theta.empty()) {
+    from.theta = s.carried.theta.data();
+    from.kept_from = s.carried.kept_from.data();
+    from.touched = s.carried.touched.data();
+  }
+  edge_angles(m, s.ct, s.theta, s.threads, from);
+}
+
 // Prepares the per-level analysis on the current mesh (ct must be valid).
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   s.bctx.mesh = &m;
@@ -173,13 +185,7 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   s.bctx.tension = o.tension;
   s.bctx.green = &s.green;
   if (need_theta && !s.theta_current) {
-    CarriedAngles from;
-    if (s.carried.valid && !s.carried.theta.empty()) {
-      from.theta = s.carried.theta.data();
-      from.kept_from = s.carried.kept_from.data();
-      from.touched = s.carried.touched.data();
-    }
-    edge_angles(m, s.ct, s.theta, s.threads, from);
+    current_angles(s, m);
   } else if (!need_theta) {
     Array<float>().swap(s.theta);
   }
@@ -1105,6 +1111,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   std::vector<float> fmax;
   std::vector<int32_t> selected;
   AngleSummary last_after;
+  bool theta_of_mesh = statistics;  // s.theta is that of m as it is now
   for (int level = 1; level <= o.levels; ++level) {
     if (cancelled()) { stats.stopped_by = "cancelled"; break; }
     const double lt0 = now();
@@ -1113,6 +1120,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     ls.level = level;
     const bool use_uniform_path = !adaptive && !hooks.force_adaptive_path;
     analyse(s, m, o, !use_uniform_path || crease > 0);
+    theta_of_mesh = !use_uniform_path || crease > 0;
     if (!adaptive) {
       ls.threshold = T_input;
       if (int64_t(m.num_faces()) * 4 > o.max_triangles) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
@@ -1165,8 +1173,19 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (clamped) { stats.budget_clamped = true; stats.stopped_by = "budget"; }
     }
     ++levels_done;
+    // After an adaptive level the angles are the next level's anyway (nearly
+    // all carried): taken now, the statistics count the θ the selection sees.
+    // A uniform level makes every edge new and the next one needs no angles
+    // without creases: one single-precision pass instead.
+    theta_of_mesh = false;
+    if (statistics && !use_uniform_path) {
+      current_angles(s, m);
+      s.theta_current = theta_of_mesh = true;
+      note_peak(s, m, 0);
+    }
     const AngleSummary after =
-        statistics ? summarize_angles(m, s.ct, nullptr, ls.threshold, crease, s.threads) : AngleSummary();
+        statistics ? summarize_angles(m, s.ct, theta_of_mesh ? &s.theta : nullptr, ls.threshold, crease, s.threads)
+                   : AngleSummary();
     last_after = after;
     ls.triangles_after = m.num_faces();
     ls.mean_theta_after = after.mean;
@@ -1187,7 +1206,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (!stats.levels.empty() && stats.levels.back().threshold == stats.threshold && last_after.edges > 0)
     stats.after = last_after;
   else if (statistics)
-    stats.after = summarize_angles(m, s.ct, nullptr, stats.threshold, crease, s.threads);
+    stats.after = summarize_angles(m, s.ct, theta_of_mesh ? &s.theta : nullptr, stats.threshold, crease, s.threads);
   if (statistics) stats.quality_after = triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();

@@ -568,6 +568,45 @@ TEST(Refine, CarriedAnglesAndDeviationsAreTheRecomputedOnes) {
   EXPECT_EQ(differ, 0);
 }
 
+// The statistics after adaptive levels are taken from the angles the
+// selection reads (carried where unchanged), not from a separate
+// single-precision pass: the output's summary must be what the exact angle of
+// every edge of the output gives, the count above the threshold included.
+TEST(Refine, AdaptiveStatisticsCountTheSelectionsAngles) {
+  int n = 0;
+  for (const Case& c : cases(8000)) {
+    for (int variant = 0; variant < 2; ++variant) {
+      RefineOptions o = opts(Mode::kIteas, 3);
+      if (variant == 1) { o.threshold_scope = Scope::kLevel; o.threshold.kind = ThresholdSpec::Kind::kMedian; }
+      Mesh m = c.mesh;
+      RefineStats st;
+      refine_mesh(m, o, RefineHooks(), &st);
+      if (st.levels.empty()) continue;  // nothing refined: the input's own table
+      CornerTable ct;
+      ct.build(m, false, 1);
+      int64_t edges = 0, above = 0;
+      double sum = 0;
+      float max = 0;
+      for (int32_t e = 0; e < ct.num_corners(); ++e) {
+        if (ct.opposite(e) < e) continue;
+        const float t = normal_angle(m, e / 3, ct.opposite(e) / 3);
+        if (std::isnan(t) || (o.crease_angle > 0 && t >= o.crease_angle)) continue;
+        ++edges;
+        sum += t;
+        max = std::max(max, t);
+        above += t > st.threshold;
+      }
+      EXPECT_EQ(st.after.edges, edges) << c.name << " variant " << variant;
+      EXPECT_EQ(st.after.above, above) << c.name << " variant " << variant;
+      EXPECT_EQ(st.after.max, max) << c.name << " variant " << variant;
+      EXPECT_NEAR(st.after.mean, edges ? sum / double(edges) : 0, 1e-9 * std::max(1.0, st.after.mean)) << c.name;
+      EXPECT_EQ(st.levels.back().mean_theta_after, st.after.mean) << c.name;
+      ++n;
+    }
+  }
+  EXPECT_GE(n, 10);
+}
+
 TEST(Refine, CancellationIsHonoured) {
   const Mesh s = test::icosphere(3);
   std::atomic<bool> cancel{true};
