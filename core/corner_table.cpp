@@ -1,6 +1,7 @@
 #include "core/corner_table.h"
 
 #include <algorithm>
+#include <atomic>
 #include <unordered_map>
 
 #include "core/parallel.h"
@@ -38,6 +39,30 @@ struct VertexCorners {
     for (int32_t f = 0; f < nc; f += 3)
       for (int k = 0; k < 3; ++k) {
         const int32_t i = fill[corner_vertex[f + k]]++;
+        corners[i] = f + k;
+        nexts[i] = corner_vertex[f + (k + 1) % 3];
+        prevs[i] = corner_vertex[f + (k + 2) % 3];
+      }
+  }
+  // The runs of some vertices only: run r holds the corners of the vertex v
+  // with id[v] == r (id[v] < 0: left out), in corner order as build() has them.
+  void build_some(const Array<int32_t>& corner_vertex, const std::vector<int32_t>& id, int32_t runs) {
+    offset.assign(size_t(runs) + 1, 0);
+    for (int32_t v : corner_vertex)
+      if (id[v] >= 0) ++offset[size_t(id[v]) + 1];
+    for (int32_t r = 0; r < runs; ++r) offset[r + 1] += offset[r];
+    const size_t total = size_t(offset[runs]);
+    corners.resize(total + kPad);
+    nexts.resize(total + kPad);
+    prevs.resize(total + kPad);
+    for (size_t i = total; i < total + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
+    std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
+    const int32_t nc = static_cast<int32_t>(corner_vertex.size());
+    for (int32_t f = 0; f < nc; f += 3)
+      for (int k = 0; k < 3; ++k) {
+        const int32_t r = id[corner_vertex[f + k]];
+        if (r < 0) continue;
+        const int32_t i = fill[r]++;
         corners[i] = f + k;
         nexts[i] = corner_vertex[f + (k + 1) % 3];
         prevs[i] = corner_vertex[f + (k + 2) % 3];
@@ -118,6 +143,78 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   return true;
 }
 
+// Runs longer than this are matched in a buffer from the heap.
+struct RunScratch {
+  static constexpr int32_t kLocal = 64;
+  int32_t local[2 * kLocal];
+  std::vector<int32_t> large;
+};
+
+// The matching of one vertex's run of corners [rb, re) (see build()): writes
+// the opposite of the corner before each of the run's corners, the vertex's
+// corner and its fan size. False, with |split|, for a vertex whose corners
+// form several fans (left to the splitting pass, nothing recorded for it).
+// |cut_kind| (per corner, may be null) says why a corner got no opposite.
+inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite, int32_t* order, uint8_t* cut_kind,
+               bool split, int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
+  const int32_t n = re - rb;
+  int32_t first = 0, faces = 0;
+  bool manifold = false;
+  switch (n) {
+    case 3: manifold = match_manifold<3>(vc, rb, opposite, order, first, faces); break;
+    case 4: manifold = match_manifold<4>(vc, rb, opposite, order, first, faces); break;
+    case 5: manifold = match_manifold<5>(vc, rb, opposite, order, first, faces); break;
+    case 6: manifold = match_manifold<6>(vc, rb, opposite, order, first, faces); break;
+    case 7: manifold = match_manifold<7>(vc, rb, opposite, order, first, faces); break;
+    case 8: manifold = match_manifold<8>(vc, rb, opposite, order, first, faces); break;
+    default: break;
+  }
+  if (manifold) {  // closed fans, as the generic walk below would find
+    if (split && faces != n) return false;
+    vertex_corner = vc.corners[rb + first];
+    fan = faces;
+    return true;
+  }
+  if (n > RunScratch::kLocal) scratch.large.resize(2 * size_t(n));
+  int32_t* right = n > RunScratch::kLocal ? scratch.large.data() : scratch.local;
+  int32_t* left = right + n;
+  for (int32_t i = 0; i < n; ++i) right[i] = -1;
+  bool open = false;
+  for (int32_t i = 0; i < n; ++i) {
+    const int32_t b = vc.nexts[rb + i], c = prev_corner(vc.corners[rb + i]);
+    int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
+    count_edges(vc, rb, re, b, reverse, same, match);
+    if (reverse == 1 && same == 1) {
+      opposite[c] = next_corner(vc.corners[match]);
+      left[i] = match - rb;
+      right[match - rb] = i;
+      continue;
+    }
+    opposite[c] = -1;
+    left[i] = -1;
+    open = true;
+    if (cut_kind) cut_kind[c] = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
+  }
+  // Left links are one-to-one, so the walk left meets the start again or ends.
+  if (!open) first = right[0] >= 0 ? right[0] : 0;
+  else
+    for (int32_t x = left[0]; x >= 0 && x != 0; x = left[x]) first = x;
+  bool closed = false;
+  for (int32_t x = first;;) {
+    if (order && faces < n) order[rb + faces] = vc.corners[rb + x];
+    ++faces;
+    const int32_t s = right[x];
+    if (s < 0) break;
+    if (s == first) { closed = true; break; }
+    if (faces > n) break;
+    x = s;
+  }
+  if (split && faces != n) return false;
+  vertex_corner = vc.corners[rb + first];
+  fan = faces > n ? CornerTable::kUnknownFan : (closed ? faces : -faces);
+  return true;
+}
+
 }  // namespace
 
 TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order) {
@@ -162,66 +259,13 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   }
   int32_t* order = record_order ? fan_corner_.data() : nullptr;
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
-    constexpr int32_t kLocal = 64;
-    int32_t local[2 * kLocal];
-    std::vector<int32_t> large;  // runs longer than kLocal
+    RunScratch scratch;
     for (int64_t a = begin; a < end; ++a) {
-      const int32_t rb = vc.offset[a], re = vc.offset[a + 1], n = re - rb;
-      if (n == 0) continue;
-      int32_t first = 0, faces = 0;
-      bool manifold = false;
-      switch (n) {
-        case 3: manifold = match_manifold<3>(vc, rb, opposite_.data(), order, first, faces); break;
-        case 4: manifold = match_manifold<4>(vc, rb, opposite_.data(), order, first, faces); break;
-        case 5: manifold = match_manifold<5>(vc, rb, opposite_.data(), order, first, faces); break;
-        case 6: manifold = match_manifold<6>(vc, rb, opposite_.data(), order, first, faces); break;
-        case 7: manifold = match_manifold<7>(vc, rb, opposite_.data(), order, first, faces); break;
-        case 8: manifold = match_manifold<8>(vc, rb, opposite_.data(), order, first, faces); break;
-        default: break;
-      }
-      if (manifold) {  // closed fans, as the generic walk below would find
-        if (split_vertices && faces != n) { several[a] = 1; continue; }
-        vertex_corner_[a] = vc.corners[rb + first];
-        fan_[a] = faces;
-        continue;
-      }
-      if (n > kLocal) large.resize(2 * size_t(n));
-      int32_t* right = n > kLocal ? large.data() : local;
-      int32_t* left = right + n;
-      for (int32_t i = 0; i < n; ++i) right[i] = -1;
-      bool open = false;
-      for (int32_t i = 0; i < n; ++i) {
-        const int32_t b = vc.nexts[rb + i], c = prev_corner(vc.corners[rb + i]);
-        int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
-        count_edges(vc, rb, re, b, reverse, same, match);
-        if (reverse == 1 && same == 1) {
-          opposite_[c] = next_corner(vc.corners[match]);
-          left[i] = match - rb;
-          right[match - rb] = i;
-          continue;
-        }
-        opposite_[c] = -1;
-        left[i] = -1;
-        open = true;
-        cut_kind[c] = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
-      }
-      // Left links are one-to-one, so the walk left meets the start again or ends.
-      if (!open) first = right[0] >= 0 ? right[0] : 0;
-      else
-        for (int32_t x = left[0]; x >= 0 && x != 0; x = left[x]) first = x;
-      bool closed = false;
-      for (int32_t x = first;;) {
-        if (order && faces < n) order[rb + faces] = vc.corners[rb + x];
-        ++faces;
-        const int32_t s = right[x];
-        if (s < 0) break;
-        if (s == first) { closed = true; break; }
-        if (faces > n) break;
-        x = s;
-      }
-      if (split_vertices && faces != n) { several[a] = 1; continue; }
-      vertex_corner_[a] = vc.corners[rb + first];
-      fan_[a] = faces > n ? kUnknownFan : (closed ? faces : -faces);
+      const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
+      if (re == rb) continue;
+      if (!match_run(vc, rb, re, opposite_.data(), order, cut_kind.data(), split_vertices, vertex_corner_[a], fan_[a],
+                     scratch))
+        several[a] = 1;
     }
   }, kVertexGrain);
   // Each undirected edge counted once: by its smallest corner.
@@ -297,6 +341,73 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
     }
   }
   return report;
+}
+
+bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from, const std::vector<uint8_t>& touched,
+                         int threads) {
+  const Array<int32_t>& cv = mesh.corner_vertex;
+  const int32_t nc = static_cast<int32_t>(cv.size()), nf = nc / 3, nv = mesh.num_vertices();
+  const int32_t old_nf = num_corners() / 3, old_nv = static_cast<int32_t>(vertex_corner_.size());
+  if (int32_t(kept_from.size()) != nf || int32_t(touched.size()) != nv || nv < old_nv ||
+      int32_t(fan_.size()) != old_nv)
+    return false;
+  // Where each kept face went.
+  std::vector<int32_t> moved(old_nf, -1);
+  for (int32_t f = 0; f < nf; ++f)
+    if (kept_from[f] >= 0) {
+      if (kept_from[f] >= old_nf) return false;
+      moved[kept_from[f]] = f;
+    }
+  auto remap = [&](int32_t c) { return c < 0 ? -1 : 3 * moved[c / 3] + c % 3; };
+  // An untouched vertex's faces are all kept, so its run is the one it had,
+  // renumbered in the same order: the opposites of the corners before its
+  // corners, its corner and its fan follow. Every corner whose next is
+  // untouched is therefore in a kept face.
+  Array<int32_t> opposite(nc);
+  std::atomic<bool> consistent{true};
+  parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+    bool ok = true;
+    for (int64_t f = b; f < e; ++f) {
+      const int32_t from = kept_from[f];
+      for (int k = 0; k < 3; ++k) {
+        const int32_t c = int32_t(3 * f + k);
+        if (touched[cv[next_corner(c)]]) continue;
+        if (from < 0) { ok = false; continue; }
+        const int32_t o = opposite_[3 * from + k];
+        ok &= o < 0 || moved[o / 3] >= 0;
+        opposite[c] = ok ? remap(o) : -1;
+      }
+    }
+    if (!ok) consistent.store(false, std::memory_order_relaxed);
+  });
+  if (!consistent.load()) return false;
+  std::vector<int32_t> vertex_corner(nv, -1), fan(nv, 0), id(nv, -1);
+  int32_t runs = 0;
+  for (int32_t v = 0; v < nv; ++v) {
+    if (touched[v]) { id[v] = runs++; continue; }
+    if (v >= old_nv) return false;  // new vertices are touched
+    vertex_corner[v] = remap(vertex_corner_[v]);
+    fan[v] = fan_[v];
+  }
+  std::vector<int32_t> vertex_of(runs);
+  for (int32_t v = 0; v < nv; ++v)
+    if (id[v] >= 0) vertex_of[id[v]] = v;
+  // The touched vertices matched as build() matches every vertex.
+  VertexCorners vc;
+  vc.build_some(cv, id, runs);
+  parallel_for(runs, threads, [&](int64_t begin, int64_t end) {
+    RunScratch scratch;
+    for (int64_t r = begin; r < end; ++r) {
+      const int32_t rb = vc.offset[r], re = vc.offset[r + 1], v = vertex_of[r];
+      if (re > rb) match_run(vc, rb, re, opposite.data(), nullptr, nullptr, false, vertex_corner[v], fan[v], scratch);
+    }
+  }, kVertexGrain);
+  opposite_.swap(opposite);
+  vertex_corner_.swap(vertex_corner);
+  fan_.swap(fan);
+  std::vector<int32_t>().swap(fan_offset_);
+  Array<int32_t>().swap(fan_corner_);
+  return true;
 }
 
 }  // namespace iteas

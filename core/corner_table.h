@@ -69,6 +69,17 @@ class CornerTable {
   // |record_order|: also keep each vertex's fan in walk order (fan_order()).
   TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false);
 
+  // The table of |mesh| made from this one, that of the mesh it was refined
+  // from, equal to what build(mesh, false) gives: |kept_from| per face of
+  // |mesh|, the face of the old mesh it copies unchanged (same corners in the
+  // same order, kept faces in their old relative order) or -1; |touched| per
+  // vertex of |mesh|, 1 when a face round it changed or it is new (old
+  // vertices keep their numbers). Only the runs of touched vertices are
+  // matched; the rest is renumbered. The old table must be build(old, false)'s
+  // (no vertices split). False, the table unchanged, when the maps do not fit it.
+  bool update(const Mesh& mesh, const std::vector<int32_t>& kept_from, const std::vector<uint8_t>& touched,
+              int threads = 1);
+
   int32_t opposite(int32_t c) const { return opposite_[c]; }
   // For a boundary vertex: the corner whose fan walk by swing_right() covers
   // the whole fan (its previous edge is a boundary edge). -1 for unused vertices.

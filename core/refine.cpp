@@ -130,6 +130,7 @@ struct State {
   // sees. Nothing is carried from that level.
   bool input_split = false;
   bool carry = true;  // RefineHooks::carry
+  bool incremental_table = true;  // RefineHooks::incremental_table
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
@@ -826,10 +827,14 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   carried.kept_from.swap(em.from);
   carried.theta.swap(s.theta);
   carried.valid = s.carry && !s.input_split;
+  // The old table is build(old, false)'s unless the input's split vertices.
+  const bool renumber = s.incremental_table && !s.input_split;
   s.input_split = false;
   if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
   ls.vertices_added = next_v - nv;
-  s.ct.build(m, false, s.threads);
+  // Only the corners round changed faces are matched again; the rest of the
+  // table is renumbered (the same table as a full build, which a test checks).
+  if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads))) s.ct.build(m, false, s.threads);
 }
 
 // ---------------------------------------------------------------------------
@@ -1074,6 +1079,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   s.ring_limit = m.num_vertices();
   s.input_split = stats.topology.split_vertices > 0;
   s.carry = hooks.carry;
+  s.incremental_table = hooks.incremental_table;
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
   const bool adaptive = o.mode != Mode::kUniform;

@@ -66,6 +66,9 @@ struct RefineHooks {
   // Testing: false recomputes every adaptive level's angles and deviations
   // instead of carrying those of unchanged edges from the level before.
   bool carry = true;
+  // Testing: false builds every adaptive level's corner table from scratch
+  // instead of renumbering the old one and matching only round changed faces.
+  bool incremental_table = true;
   // Benchmarks: false skips the smoothness and quality statistics of uniform
   // refinement (θ after each level, triangle angles before and after), to time
   // the subdivision alone. Adaptive modes need θ and compute it regardless.

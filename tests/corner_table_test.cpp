@@ -58,6 +58,77 @@ TEST(CornerTable, InvariantsOnEveryMesh) {
   EXPECT_GT(checked, 20);
 }
 
+// CornerTable::update against a build from scratch, over three rounds of
+// changes on every mesh up to 20k triangles: some faces split 1 -> 3 at a new
+// centre vertex, some deleted (new boundaries), one face doubled (cut edges),
+// the rest kept in order. Opposites, vertex corners and fans must all be
+// the full build's.
+TEST(CornerTable, UpdateEqualsABuildOfTheRefinedMesh) {
+  int checked = 0;
+  for (const std::string& path : test::valid_mesh_files()) {
+    Document doc;
+    if (!test::load(path, &doc).ok()) continue;
+    for (MeshSlot& slot : doc.meshes) {
+      if (slot.mesh.num_faces() > 20000) continue;
+      SCOPED_TRACE(path);
+      Mesh m = slot.mesh;
+      CornerTable ct;
+      ct.build(m, true, 1);  // split non-manifold vertices once, as the input is
+      ct.build(m, false, 2);
+      for (int round = 0; round < 3; ++round) {
+        Mesh next;
+        next.positions = m.positions;
+        std::vector<int32_t> kept_from;
+        std::vector<uint8_t> touched(m.num_vertices(), 0);
+        const int32_t nf = m.num_faces();
+        for (int32_t f = 0; f < nf; ++f) {
+          const int32_t* t = &m.corner_vertex[3 * size_t(f)];
+          const uint32_t h = uint32_t(f) * 2654435761u + uint32_t(round) * 40503u;
+          if (h % 13 == 0 || (h >> 8) % 7 == 0 || f == round) {
+            for (int k = 0; k < 3; ++k) touched[t[k]] = 1;
+            if (h % 13 == 0) continue;  // deleted
+            if (f == round) {  // doubled: the face and a copy
+              for (int copy = 0; copy < 2; ++copy) {
+                next.corner_vertex.insert(next.corner_vertex.end(), t, t + 3);
+                kept_from.push_back(-1);
+              }
+              continue;
+            }
+            const int32_t p = next.num_vertices();  // split at its centre
+            for (int j = 0; j < 3; ++j) {
+              float x = 0;
+              for (int k = 0; k < 3; ++k) x += m.positions[3 * size_t(t[k]) + j] / 3;
+              next.positions.push_back(x);
+            }
+            touched.push_back(1);
+            for (int k = 0; k < 3; ++k) {
+              const int32_t tri[3] = {t[k], t[(k + 1) % 3], p};
+              next.corner_vertex.insert(next.corner_vertex.end(), tri, tri + 3);
+              kept_from.push_back(-1);
+            }
+            continue;
+          }
+          next.corner_vertex.insert(next.corner_vertex.end(), t, t + 3);
+          kept_from.push_back(f);
+        }
+        CornerTable updated = ct, fresh;
+        ASSERT_TRUE(updated.update(next, kept_from, touched, 2)) << "round " << round;
+        fresh.build(next, false, 1);
+        ASSERT_EQ(updated.num_corners(), fresh.num_corners());
+        int differ = 0;
+        for (int32_t c = 0; c < fresh.num_corners(); ++c) differ += updated.opposite(c) != fresh.opposite(c);
+        for (int32_t v = 0; v < next.num_vertices(); ++v)
+          differ += updated.vertex_corner(v) != fresh.vertex_corner(v) || updated.fans()[v] != fresh.fans()[v];
+        ASSERT_EQ(differ, 0) << "round " << round;
+        m = std::move(next);
+        ct = std::move(updated);
+      }
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 20);
+}
+
 TEST(CornerTable, CutsNonManifoldAndConflicts) {
   // Three triangles on one edge (0,1) and a fourth glued with the wrong orientation.
   Mesh m;
