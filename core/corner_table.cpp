@@ -45,28 +45,24 @@ struct VertexCorners {
       }
   }
   // The runs of some vertices only: run r holds the corners of the vertex v
-  // with id[v] == r (id[v] < 0: left out), in corner order as build() has them.
-  void build_some(const Array<int32_t>& corner_vertex, const std::vector<int32_t>& id, int32_t runs) {
+  // with id[v] == r, in corner order as build() has them; |at| lists every
+  // corner of those vertices in corner order.
+  void build_some(const Array<int32_t>& corner_vertex, const std::vector<int32_t>& at, const std::vector<int32_t>& id,
+                  int32_t runs) {
     offset.assign(size_t(runs) + 1, 0);
-    for (int32_t v : corner_vertex)
-      if (id[v] >= 0) ++offset[size_t(id[v]) + 1];
+    for (int32_t c : at) ++offset[size_t(id[corner_vertex[c]]) + 1];
     for (int32_t r = 0; r < runs; ++r) offset[r + 1] += offset[r];
-    const size_t total = size_t(offset[runs]);
-    corners.resize(total + kPad);
-    nexts.resize(total + kPad);
-    prevs.resize(total + kPad);
-    for (size_t i = total; i < total + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
+    corners.resize(at.size() + kPad);
+    nexts.resize(at.size() + kPad);
+    prevs.resize(at.size() + kPad);
+    for (size_t i = at.size(); i < at.size() + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
-    const int32_t nc = static_cast<int32_t>(corner_vertex.size());
-    for (int32_t f = 0; f < nc; f += 3)
-      for (int k = 0; k < 3; ++k) {
-        const int32_t r = id[corner_vertex[f + k]];
-        if (r < 0) continue;
-        const int32_t i = fill[r]++;
-        corners[i] = f + k;
-        nexts[i] = corner_vertex[f + (k + 1) % 3];
-        prevs[i] = corner_vertex[f + (k + 2) % 3];
-      }
+    for (int32_t c : at) {
+      const int32_t i = fill[id[corner_vertex[c]]]++;
+      corners[i] = c;
+      nexts[i] = corner_vertex[next_corner(c)];
+      prevs[i] = corner_vertex[prev_corner(c)];
+    }
   }
 };
 
@@ -393,8 +389,11 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   for (int32_t v = 0; v < nv; ++v)
     if (id[v] >= 0) vertex_of[id[v]] = v;
   // The touched vertices matched as build() matches every vertex.
+  std::vector<int32_t> at;
+  for (int32_t c = 0; c < nc; ++c)
+    if (touched[cv[c]]) at.push_back(c);
   VertexCorners vc;
-  vc.build_some(cv, id, runs);
+  vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {
     RunScratch scratch;
     for (int64_t r = begin; r < end; ++r) {
