@@ -57,6 +57,16 @@ bool same_mesh(const Mesh& a, const Mesh& b) {
          a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group;
 }
 
+// |m| with its first triangle twice: the input's table then splits vertices
+// (the cut edges heal on the next level's table).
+Mesh with_doubled_triangle(const Mesh& m) {
+  Mesh in = m;
+  for (int k = 0; k < 3; ++k) in.corner_vertex.push_back(in.corner_vertex[k]);
+  if (!in.face_group.empty()) in.face_group.push_back(in.face_group[0]);
+  if (in.has_wedges()) for (int k = 0; k < 3; ++k) in.corner_wedge.push_back(in.corner_wedge[k]);
+  return in;
+}
+
 // The input as refinement sees it: non-manifold fans split.
 Mesh prepared(const Mesh& in) {
   Mesh m = in;
@@ -536,12 +546,7 @@ TEST(Refine, CarriedAnglesAndDeviationsAreTheRecomputedOnes) {
   int n = 0, differ = 0;
   for (const Case& c : cases(8000)) {
     for (const bool doubled : {false, true}) {
-      Mesh in = c.mesh;
-      if (doubled) {
-        for (int k = 0; k < 3; ++k) in.corner_vertex.push_back(in.corner_vertex[k]);
-        if (!in.face_group.empty()) in.face_group.push_back(in.face_group[0]);
-        if (in.has_wedges()) for (int k = 0; k < 3; ++k) in.corner_wedge.push_back(in.corner_wedge[k]);
-      }
+      const Mesh in = doubled ? with_doubled_triangle(c.mesh) : c.mesh;
       for (int variant = 0; variant < 3; ++variant) {
         RefineOptions o = opts(Mode::kIteas, 3);
         if (variant == 1) { o.crease_angle = 30; o.tension = 0.03; }
@@ -577,12 +582,7 @@ TEST(Refine, RenumberedTablesRefineAsFullBuildsDo) {
   int n = 0, differ = 0;
   for (const Case& c : cases(8000)) {
     for (const bool doubled : {false, true}) {
-      Mesh in = c.mesh;
-      if (doubled) {
-        for (int k = 0; k < 3; ++k) in.corner_vertex.push_back(in.corner_vertex[k]);
-        if (!in.face_group.empty()) in.face_group.push_back(in.face_group[0]);
-        if (in.has_wedges()) for (int k = 0; k < 3; ++k) in.corner_wedge.push_back(in.corner_wedge[k]);
-      }
+      const Mesh in = doubled ? with_doubled_triangle(c.mesh) : c.mesh;
       for (int variant = 0; variant < 2; ++variant) {
         RefineOptions o = opts(Mode::kIteas, 3);
         if (variant == 1) { o.crease_angle = 30; o.max_triangles = 2 * int64_t(in.num_faces()); }
