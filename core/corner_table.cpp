@@ -377,17 +377,18 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
     if (!ok) consistent.store(false, std::memory_order_relaxed);
   });
   if (!consistent.load()) return false;
-  std::vector<int32_t> vertex_corner(nv, -1), fan(nv, 0), id(nv, -1);
-  int32_t runs = 0;
+  std::vector<int32_t> vertex_corner(nv, -1), fan(nv, 0), id(nv, -1), vertex_of;  // id: run of a touched vertex
   for (int32_t v = 0; v < nv; ++v) {
-    if (touched[v]) { id[v] = runs++; continue; }
+    if (touched[v]) {
+      id[v] = int32_t(vertex_of.size());
+      vertex_of.push_back(v);
+      continue;
+    }
     if (v >= old_nv) return false;  // new vertices are touched
     vertex_corner[v] = remap(vertex_corner_[v]);
     fan[v] = fan_[v];
   }
-  std::vector<int32_t> vertex_of(runs);
-  for (int32_t v = 0; v < nv; ++v)
-    if (id[v] >= 0) vertex_of[id[v]] = v;
+  const int32_t runs = int32_t(vertex_of.size());
   // The touched vertices matched as build() matches every vertex.
   std::vector<int32_t> at;
   for (int32_t c = 0; c < nc; ++c)

@@ -121,8 +121,16 @@ struct State {
     std::vector<int32_t> kept_from;
     std::vector<uint8_t> touched;
     bool valid = false;
+    // The test of a carried edge (no angles: those are the caller's).
+    CarriedAngles edges() const {
+      CarriedAngles e;
+      e.kept_from = kept_from.data();
+      e.touched = touched.data();
+      return e;
+    }
   } carried;
-  // s.theta is that of the current mesh (computed for the input's statistics).
+  // s.theta is that of the mesh as it is now (a level that changes the mesh
+  // clears it; analyse then computes the angles again).
   bool theta_current = false;
   // The input's corner table split vertices: it was matched before they were
   // split, so an edge there may be cut by a face that no longer shares its
@@ -171,11 +179,11 @@ void grow_wedges(Mesh& m, int64_t nw) {
 void current_angles(State& s, const Mesh& m) {
   CarriedAngles from;
   if (s.carried.valid && !s.carried.theta.empty()) {
+    from = s.carried.edges();
     from.theta = s.carried.theta.data();
-    from.kept_from = s.carried.kept_from.data();
-    from.touched = s.carried.touched.data();
   }
   edge_angles(m, s.ct, s.theta, s.threads, from);
+  s.theta_current = true;
 }
 
 // Prepares the per-level analysis on the current mesh (ct must be valid).
@@ -189,8 +197,8 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
     current_angles(s, m);
   } else if (!need_theta) {
     Array<float>().swap(s.theta);
+    s.theta_current = false;
   }
-  s.theta_current = false;
   Array<float>().swap(s.carried.theta);
   if (s.classes_valid && !need_theta) return;  // derived by the uniform level
   s.classes_valid = false;
@@ -426,6 +434,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     s.ct = CornerTable();  // stale: no use may follow
   }
   Array<float>().swap(s.theta);
+  s.theta_current = false;
   // Without creases the next level's sharp edges are its boundary: no flags.
   std::vector<uint8_t>().swap(s.sharp);
   if (!derive_classes) {
@@ -826,6 +835,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   s.born.swap(em.born.values);
   carried.kept_from.swap(em.from);
   carried.theta.swap(s.theta);
+  s.theta_current = false;
   carried.valid = s.carry && !s.input_split;
   // The old table is build(old, false)'s unless the input's split vertices.
   const bool renumber = s.incremental_table && !s.input_split;
@@ -1001,9 +1011,7 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
     if (reuse) {
-      CarriedAngles edges;  // the same test of a carried edge as the angles'
-      edges.kept_from = carried.kept_from.data();
-      edges.touched = carried.touched.data();
+      const CarriedAngles edges = carried.edges();  // the same test of a carried edge as the angles'
       parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
         for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
           const int64_t from = edges.source(cv, c);
@@ -1090,11 +1098,10 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   const bool statistics = hooks.statistics || adaptive;
   double T_input = 0;
   if (statistics) {
-    edge_angles(m, s.ct, s.theta, s.threads);
+    current_angles(s, m);  // nothing carried into the input
     T_input = o.mode == Mode::kUniform ? summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean
                                        : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
     stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
-    s.theta_current = true;
     stats.quality_before = triangle_quality(m, s.threads);
   }
   stats.threshold = T_input;
@@ -1117,7 +1124,6 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   std::vector<float> fmax;
   std::vector<int32_t> selected;
   AngleSummary last_after;
-  bool theta_of_mesh = statistics;  // s.theta is that of m as it is now
   for (int level = 1; level <= o.levels; ++level) {
     if (cancelled()) { stats.stopped_by = "cancelled"; break; }
     const double lt0 = now();
@@ -1126,7 +1132,6 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     ls.level = level;
     const bool use_uniform_path = !adaptive && !hooks.force_adaptive_path;
     analyse(s, m, o, !use_uniform_path || crease > 0);
-    theta_of_mesh = !use_uniform_path || crease > 0;
     if (!adaptive) {
       ls.threshold = T_input;
       if (int64_t(m.num_faces()) * 4 > o.max_triangles) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
@@ -1183,14 +1188,12 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     // all carried): taken now, the statistics count the θ the selection sees.
     // A uniform level makes every edge new and the next one needs no angles
     // without creases: one single-precision pass instead.
-    theta_of_mesh = false;
     if (statistics && !use_uniform_path) {
       current_angles(s, m);
-      s.theta_current = theta_of_mesh = true;
       note_peak(s, m, 0);
     }
     const AngleSummary after =
-        statistics ? summarize_angles(m, s.ct, theta_of_mesh ? &s.theta : nullptr, ls.threshold, crease, s.threads)
+        statistics ? summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, ls.threshold, crease, s.threads)
                    : AngleSummary();
     last_after = after;
     ls.triangles_after = m.num_faces();
@@ -1212,7 +1215,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (!stats.levels.empty() && stats.levels.back().threshold == stats.threshold && last_after.edges > 0)
     stats.after = last_after;
   else if (statistics)
-    stats.after = summarize_angles(m, s.ct, theta_of_mesh ? &s.theta : nullptr, stats.threshold, crease, s.threads);
+    stats.after = summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, stats.threshold, crease, s.threads);
   if (statistics) stats.quality_after = triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();
