@@ -24,24 +24,61 @@ struct VertexCorners {
   Array<int32_t> corners;
   Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
   Array<int32_t> prevs;         // corner_vertex[prev_corner(corners[i])]
-  void build(const Array<int32_t>& corner_vertex, int32_t nv) {
-    offset.assign(size_t(nv) + 1, 0);
-    for (int32_t v : corner_vertex) ++offset[size_t(v) + 1];
-    for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
+  // Counting sort in |parts| contiguous ranges of faces, each counted and
+  // filled on its own thread: part p's corners of a vertex follow those of the
+  // parts before it, so every run is in corner order whatever the parts.
+  void build(const Array<int32_t>& corner_vertex, int32_t nv, int threads) {
+    const int32_t nc = static_cast<int32_t>(corner_vertex.size()), nf = nc / 3;
+    const int parts = int(std::max<int64_t>(1, std::min<int64_t>({int64_t(threads), 8, nf / kMinPartFaces})));
+    offset.resize(size_t(nv) + 1);
     // kPad entries after the last run, matching no vertex: a run of up to 8 is
     // then compared 8 at a time without reading past the arrays.
-    corners.resize(corner_vertex.size() + kPad);
-    nexts.resize(corner_vertex.size() + kPad);
-    prevs.resize(corner_vertex.size() + kPad);
-    for (size_t i = corner_vertex.size(); i < corner_vertex.size() + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
-    std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
-    const int32_t nc = static_cast<int32_t>(corner_vertex.size());
-    for (int32_t f = 0; f < nc; f += 3)
+    corners.resize(size_t(nc) + kPad);
+    nexts.resize(size_t(nc) + kPad);
+    prevs.resize(size_t(nc) + kPad);
+    for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
+    const int32_t* cv = corner_vertex.data();
+    auto first_face = [nf, parts](int64_t p) { return int32_t(int64_t(nf) * p / parts); };
+    if (parts == 1) {
+      std::fill(offset.begin(), offset.end(), 0);
+      for (int32_t c = 0; c < nc; ++c) ++offset[size_t(cv[c]) + 1];
+      for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
+      std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
+      fill_part(cv, 0, nf, fill.data());
+      return;
+    }
+    // fill[p][v]: part p's count of v, then where its first corner of v goes.
+    std::vector<std::vector<int32_t>> fill(parts);
+    parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
+      for (int64_t p = b; p < e; ++p) {
+        fill[p].assign(size_t(nv), 0);
+        int32_t* count = fill[p].data();
+        for (int32_t c = 3 * first_face(p), end = 3 * first_face(p + 1); c < end; ++c) ++count[cv[c]];
+      }
+    });
+    int32_t total = 0;
+    for (int32_t v = 0; v < nv; ++v) {
+      offset[v] = total;
+      for (int p = 0; p < parts; ++p) {
+        const int32_t n = fill[p][v];
+        fill[p][v] = total;
+        total += n;
+      }
+    }
+    offset[nv] = total;
+    parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
+      for (int64_t p = b; p < e; ++p) fill_part(cv, first_face(p), first_face(p + 1), fill[p].data());
+    });
+  }
+  // Faces below this many per part are counted and filled on one thread.
+  static constexpr int32_t kMinPartFaces = 1024;
+  void fill_part(const int32_t* cv, int32_t face_begin, int32_t face_end, int32_t* fill) {
+    for (int32_t f = 3 * face_begin, end = 3 * face_end; f < end; f += 3)
       for (int k = 0; k < 3; ++k) {
-        const int32_t i = fill[corner_vertex[f + k]]++;
+        const int32_t i = fill[cv[f + k]]++;
         corners[i] = f + k;
-        nexts[i] = corner_vertex[f + (k + 1) % 3];
-        prevs[i] = corner_vertex[f + (k + 2) % 3];
+        nexts[i] = cv[f + (k + 1) % 3];
+        prevs[i] = cv[f + (k + 2) % 3];
       }
   }
   // The runs of some vertices only: run r holds the corners of the vertex v
@@ -150,9 +187,14 @@ struct RunScratch {
 // the opposite of the corner before each of the run's corners, the vertex's
 // corner and its fan size. False, with |split|, for a vertex whose corners
 // form several fans (left to the splitting pass, nothing recorded for it).
-// |cut_kind| (per corner, may be null) says why a corner got no opposite.
+// |cut_kind| (per corner, may be null) says why a corner got no opposite;
+// |cuts| counts those corners, and those cut for another reason than the
+// boundary (non-manifold or orientation conflict).
+struct Cuts {
+  int64_t corners = 0, not_boundary = 0;
+};
 inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite, int32_t* order, uint8_t* cut_kind,
-               bool split, int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
+                      Cuts* cuts, bool split, int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
   const int32_t n = re - rb;
   int32_t first = 0, faces = 0;
   bool manifold = false;
@@ -189,7 +231,12 @@ inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* 
     opposite[c] = -1;
     left[i] = -1;
     open = true;
-    if (cut_kind) cut_kind[c] = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
+    const uint8_t kind = reverse + same >= 3 ? 1 : (same == 2 ? 2 : 0);
+    if (cut_kind) cut_kind[c] = kind;
+    if (cuts) {
+      ++cuts->corners;
+      cuts->not_boundary += kind != 0;
+    }
   }
   // Left links are one-to-one, so the walk left meets the start again or ends.
   if (!open) first = right[0] >= 0 ? right[0] : 0;
@@ -218,7 +265,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
   VertexCorners vc;
-  vc.build(cv, mesh.num_vertices());
+  vc.build(cv, mesh.num_vertices(), threads);
   opposite_.resize(nc);  // every entry is written below
 
   // Per corner c: its edge runs a = v(next c) -> b = v(prev c); its corner at
@@ -254,22 +301,28 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
     fan_corner_.resize(nc);
   }
   int32_t* order = record_order ? fan_corner_.data() : nullptr;
+  std::atomic<int64_t> cut_corners{0}, odd_cuts{0};
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     RunScratch scratch;
+    Cuts cuts;
     for (int64_t a = begin; a < end; ++a) {
       const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
       if (re == rb) continue;
-      if (!match_run(vc, rb, re, opposite_.data(), order, cut_kind.data(), split_vertices, vertex_corner_[a], fan_[a],
-                     scratch))
+      if (!match_run(vc, rb, re, opposite_.data(), order, cut_kind.data(), &cuts, split_vertices, vertex_corner_[a],
+                     fan_[a], scratch))
         several[a] = 1;
     }
+    if (cuts.corners) cut_corners.fetch_add(cuts.corners, std::memory_order_relaxed);
+    if (cuts.not_boundary) odd_cuts.fetch_add(cuts.not_boundary, std::memory_order_relaxed);
   }, kVertexGrain);
-  // Each undirected edge counted once: by its smallest corner.
-  {
+  // Every corner without an opposite is a boundary edge after cutting; the
+  // edges cut for another reason are told apart (each undirected edge counted
+  // once, by its smallest corner) only when there are any.
+  report.boundary_edges = cut_corners.load();
+  if (odd_cuts.load() > 0) {
     std::unordered_map<uint64_t, uint8_t> seen;
     for (int32_t c = 0; c < nc; ++c) {
-      if (opposite_[c] >= 0) continue;
-      if (cut_kind[c] == 0) { ++report.boundary_edges; continue; }
+      if (opposite_[c] >= 0 || cut_kind[c] == 0) continue;
       int32_t a = cv[next_corner(c)], b = cv[prev_corner(c)];
       if (a > b) std::swap(a, b);
       const uint64_t key = (uint64_t(uint32_t(a)) << 32) | uint32_t(b);
@@ -277,7 +330,6 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
         if (cut_kind[c] == 1) ++report.non_manifold_edges;
         else ++report.orientation_conflicts;
       }
-      ++report.boundary_edges;
     }
   }
   if (!split_vertices) return report;
@@ -399,7 +451,8 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
     RunScratch scratch;
     for (int64_t r = begin; r < end; ++r) {
       const int32_t rb = vc.offset[r], re = vc.offset[r + 1], v = vertex_of[r];
-      if (re > rb) match_run(vc, rb, re, opposite.data(), nullptr, nullptr, false, vertex_corner[v], fan[v], scratch);
+      if (re > rb)
+        match_run(vc, rb, re, opposite.data(), nullptr, nullptr, nullptr, false, vertex_corner[v], fan[v], scratch);
     }
   }, kVertexGrain);
   opposite_.swap(opposite);

@@ -18,8 +18,12 @@ template <typename T, typename A>
 int64_t vbytes(const std::vector<T, A>& v) { return int64_t(v.capacity() * sizeof(T)); }
 
 // Fixed-size chunks make prefix sums (and so all numbering) independent of
-// the thread count.
-constexpr int64_t kChunk = 2048;
+// the thread count. (The numbering does not depend on their size either:
+// small enough that a small level's data pass splits evenly over two threads.)
+constexpr int64_t kChunk = 1024;
+// Per-face loops of a uniform level write 12 entries a face: this many faces
+// take longer than handing half of them to another thread.
+constexpr int64_t kFaceGrain = 1024;
 
 // ---------------------------------------------------------------------------
 // Wedge data: blended along an edge on one side (SPEC §2 "Attributes").
@@ -382,7 +386,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       }
       if (!fg.empty()) for (int j = 0; j < 4; ++j) fg[4 * size_t(f) + j] = m.face_group[f];
     }
-  });
+  }, kFaceGrain);
 
   // The old vertices' corners follow: corner k of face f becomes corner k of
   // child k (still the start of an open fan).
@@ -425,7 +429,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         }
       }
     }
-  });
+  }, kFaceGrain);
   note_peak(s, m, vbytes(nopp));
   if (connectivity) {
     s.ct.opposites().swap(nopp);
