@@ -1,9 +1,11 @@
 // Corner-table invariants on every mesh we have (issue 2, point 4).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <mutex>
 #include <stdexcept>
 
 #include "core/angles.h"
@@ -338,6 +340,28 @@ TEST(Parallel, EveryIndexOnceWhateverThePartition) {
   int64_t wrong = 0;
   for (auto& x : seen) wrong += x.load() != 1;
   EXPECT_EQ(wrong, 0) << "nested loops";
+}
+
+// The pieces of a loop have lengths that differ by one at most, and each
+// thread's share holds as many of them (a short last piece left one thread's
+// share short, and the longer share set the loop's time); none is under the
+// grain unless the range is shorter than a grain per thread.
+TEST(Parallel, PiecesAreEvenAndDealtEvenly) {
+  struct Case { int64_t n, grain; };
+  for (int threads : {2, 3})
+    for (Case c : {Case{1839, 512}, Case{11, 1}, Case{3674, 1024}, Case{100001, 4096}, Case{5, 1}}) {
+      std::mutex mutex;
+      std::vector<int64_t> lengths;
+      iteas::parallel_for(c.n, threads, [&](int64_t b, int64_t e) {
+        std::lock_guard<std::mutex> lock(mutex);
+        lengths.push_back(e - b);
+      }, c.grain);
+      const auto [shortest, longest] = std::minmax_element(lengths.begin(), lengths.end());
+      const int used = int(std::min<int64_t>(threads, (c.n + c.grain - 1) / c.grain));
+      EXPECT_LE(*longest - *shortest, 1) << threads << " threads, n " << c.n;
+      EXPECT_EQ(lengths.size() % used, 0u) << threads << " threads, n " << c.n;
+      if (c.n >= c.grain * used) EXPECT_GE(*shortest, c.grain) << threads << " threads, n " << c.n;
+    }
 }
 
 // Loops that follow a serial step long enough for the workers to fall asleep:
