@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <mutex>
 #include <sstream>
 
 #include "core/parallel.h"
@@ -142,7 +143,12 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   parallel_for(nc, threads, [&](int64_t b, int64_t e) {
     std::fill(theta.data() + b, theta.data() + e, std::numeric_limits<float>::quiet_NaN());
   });
-  constexpr int64_t kFaces = 4096;
+  // (The chunks only bound the normals cached: any size gives the same
+  // angles. On more than one thread, small enough that a small mesh splits
+  // evenly: an edge is computed by the chunk of its smaller corner, so the
+  // first chunks hold more of them. On one, larger: a neighbour outside the
+  // chunk has its normal computed on the fly, once per edge.)
+  const int64_t kFaces = threads == 1 ? 4096 : 1024;
   const int64_t nf = nc / 3, chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
@@ -190,20 +196,29 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
 
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude, int threads) {
-  // Fixed chunks of faces (deterministic for any thread count). Without theta,
-  // each chunk computes its faces' normals once into a small cache; neighbours
-  // outside the chunk (few: subdivision keeps a parent's children together)
-  // are computed on the fly. Memory: O(threads), not O(faces).
+  // The sum of the angles is kept exactly, in fixed point (units of 2^-40
+  // degree, in a 128-bit integer): every angle of 2^-17 degree or more is a
+  // whole number of units, a smaller one is cut to whole units (under 1e-12
+  // degree). Counts, the maximum and an exact sum do not depend on the order
+  // in which they are gathered, so each piece of the loop adds its own into
+  // the total under a lock, whatever the pieces (fixed chunks of 8192 faces
+  // combined in order left a small level on one thread or two uneven ones).
+  // Without theta, the piece computes its faces' normals in blocks into a
+  // small cache; neighbours outside the block (few: subdivision keeps a
+  // parent's children together) are computed on the fly. Memory: O(threads),
+  // not O(faces).
   const int32_t nc = ct.num_corners();
   constexpr int64_t kFaces = 8192;
   const int64_t nf = nc / 3;
-  const int64_t chunks = (nf + kFaces - 1) / kFaces;
-  std::vector<AngleSummary> part(chunks);
-  std::vector<double> sums(chunks, 0.0);
-  parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
-    // Per thread: the chunk's normals, then per edge the sine and cosine
-    // of the angle, then the angles (a vectorised loop), in edge order.
-    // The sines and cosines go through small blocks on the stack.
+  constexpr double kUnits = 1099511627776.0;  // 2^40 units per degree
+  __extension__ typedef __int128 Sum;
+  std::mutex mutex;
+  AngleSummary total;
+  Sum total_sum = 0;
+  parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+    // Per block: the faces' normals, then per edge the sine and cosine of
+    // the angle, then the angles (a vectorised loop), in edge order. The
+    // sines and cosines go through small blocks on the stack.
     constexpr int kBlock = 1024;
     float ys[kBlock], xs[kBlock], ts[kBlock];
     Array<float> cache(theta ? 0 : 3 * kFaces), gathered(theta ? 0 : 6 * kBlock);  // written before read
@@ -213,68 +228,59 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     if (!theta)
       for (int j = 0; j < 6; ++j) soa[j] = gathered.data() + j * kBlock;
     const int32_t* opp = ct.opposites().data();
-    for (int64_t k = b; k < e; ++k) {
-      const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
-      // Accumulated in locals (not through references the stores might alias).
-      int64_t edges = 0, above = 0, hist[18] = {0};
-      double sum = 0;
-      float max = 0;
-      auto add = [&](float t) {
-        if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
-        ++edges;
-        sum += t;
-        max = std::max(max, t);
-        above += t > threshold;
-        hist[std::min(17, std::max(0, int(t / 10.0f)))]++;
-      };
+    // Accumulated in locals (not through references the stores might alias).
+    int64_t edges = 0, above = 0, hist[18] = {0};
+    Sum sum = 0;
+    float max = 0;
+    auto add = [&](float t) {
+      if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
+      ++edges;
+      sum += static_cast<int64_t>(double(t) * kUnits);  // t <= 180: under 2^48 units
+      max = std::max(max, t);
+      above += t > threshold;
+      hist[std::min(17, std::max(0, int(t / 10.0f)))]++;
+    };
+    for (int64_t f0 = b; f0 < e; f0 += kFaces) {
+      const int64_t f1 = std::min(e, f0 + kFaces);
       if (theta) {
         for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c)
           if (opp[c] > c) add((*theta)[c]);  // boundary (-1) or counted at the smaller corner
-      } else {
-        face_normals_or_nan(mesh, f0, f1, cache.data());
-        int n = 0;
-        auto flush = [&] {
-          sine_cosine(soa, n, ys, xs);
-          atan2_degrees(ys, xs, ts, n);
-          for (int i = 0; i < n; ++i) add(ts[i]);
-          n = 0;
-        };
-        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-          const int32_t d = opp[c];
-          if (d < c) continue;
-          const int64_t g = d / 3;
-          const float* n1 = &cache[3 * size_t(c / 3 - f0)];
-          float far[3];
-          const float* ng = far;
-          if (g < f1) ng = &cache[3 * size_t(g - f0)];
-          else face_normals_or_nan(mesh, g, g + 1, far);  // a neighbour outside the chunk (few)
-          for (int j = 0; j < 3; ++j) {
-            soa[j][n] = n1[j];
-            soa[3 + j][n] = ng[j];
-          }
-          if (++n == kBlock) flush();
-        }
-        flush();
+        continue;
       }
-      AngleSummary& s = part[k];
-      s.edges = edges;
-      s.above = above;
-      s.max = max;
-      sums[k] = sum;
-      std::copy(hist, hist + 18, s.histogram.begin());
+      face_normals_or_nan(mesh, f0, f1, cache.data());
+      int n = 0;
+      auto flush = [&] {
+        sine_cosine(soa, n, ys, xs);
+        atan2_degrees(ys, xs, ts, n);
+        for (int i = 0; i < n; ++i) add(ts[i]);
+        n = 0;
+      };
+      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+        const int32_t d = opp[c];
+        if (d < c) continue;
+        const int64_t g = d / 3;
+        const float* n1 = &cache[3 * size_t(c / 3 - f0)];
+        float far[3];
+        const float* ng = far;
+        if (g < f1) ng = &cache[3 * size_t(g - f0)];
+        else face_normals_or_nan(mesh, g, g + 1, far);  // a neighbour outside the block (few)
+        for (int j = 0; j < 3; ++j) {
+          soa[j][n] = n1[j];
+          soa[3 + j][n] = ng[j];
+        }
+        if (++n == kBlock) flush();
+      }
+      flush();
     }
-  });
-  AngleSummary s;
-  double sum = 0;
-  for (int64_t k = 0; k < chunks; ++k) {
-    s.edges += part[k].edges;
-    sum += sums[k];
-    s.max = std::max(s.max, part[k].max);
-    s.above += part[k].above;
-    for (int i = 0; i < 18; ++i) s.histogram[i] += part[k].histogram[i];
-  }
-  s.mean = s.edges ? sum / double(s.edges) : 0;
-  return s;
+    std::lock_guard<std::mutex> lock(mutex);
+    total.edges += edges;
+    total.above += above;
+    total.max = std::max(total.max, double(max));
+    total_sum += sum;
+    for (int i = 0; i < 18; ++i) total.histogram[i] += hist[i];
+  }, theta ? 2048 : kFaces);  // computing normals: pieces of a block at least
+  total.mean = total.edges ? double(total_sum) / kUnits / double(total.edges) : 0;
+  return total;
 }
 
 std::string ThresholdSpec::text() const {
@@ -328,64 +334,62 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // shortest edge: with squared edge lengths e and twice the area |cr|,
   // tan = |cr| / ((e_a + e_b - e_min) / 2) — one square root and the
   // polynomial atan2, no inverse sine.
+  // Each piece of the loop counts into a histogram of its own and adds it to
+  // the total under a lock: counts and a minimum do not depend on the order
+  // in which they are gathered, so the pieces may be any size (a small level
+  // is split over the threads too, where fixed chunks of 32768 faces left it
+  // on one).
   constexpr int kBins = 6001;
   const int32_t nf = mesh.num_faces();
-  constexpr int64_t kChunk = 1 << 15;
-  const int64_t chunks = (nf + kChunk - 1) / kChunk;
-  std::vector<Array<int32_t>> hist(chunks);  // Array: populated in one call
-  std::vector<float> mins(chunks, 180.0f);
+  std::mutex mutex;
+  Array<int64_t> all(kBins, 0);
+  float min_angle = 180.0f;
   const float* p = mesh.positions.data();
   const int32_t* cv = mesh.corner_vertex.data();
-  parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+  parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block of faces: the atan2 arguments (double arithmetic), the angles
     // (a vectorised loop), then the minimum and the histogram.
     constexpr int kBlock = 2048;
     float ys[kBlock], xs[kBlock], angles[kBlock];
-    for (int64_t k = b; k < e; ++k) {
-      Array<int32_t>& h = hist[k];
-      h.assign(kBins, 0);
-      int32_t* bins = h.data();
-      float lo = 180.0f;
-      const int32_t end = int32_t(std::min<int64_t>(nf, (k + 1) * kChunk));
-      for (int32_t f0 = int32_t(k * kChunk); f0 < end; f0 += kBlock) {
-        int n = 0;
-        for (int32_t f = f0, f1 = std::min(end, f0 + kBlock); f < f1; ++f) {
-          const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
-          const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
-          const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
-          double u[3], w[3], z[3];
-          for (int i = 0; i < 3; ++i) {
-            u[i] = double(q[i]) - a[i];
-            w[i] = double(r[i]) - a[i];
-            z[i] = double(r[i]) - q[i];
-          }
-          const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
-          const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
-          const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-          const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-          if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
-          ys[n] = float(std::sqrt(cx * cx + cy * cy + cz * cz));
-          xs[n] = float(0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2))));
-          ++n;
+    Array<int32_t> h(kBins, 0);  // a piece holds fewer than 2^31 faces
+    int32_t* bins = h.data();
+    float lo = 180.0f;
+    for (int32_t f0 = int32_t(b); f0 < int32_t(e); f0 += kBlock) {
+      int n = 0;
+      for (int32_t f = f0, f1 = std::min(int32_t(e), f0 + kBlock); f < f1; ++f) {
+        const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
+        const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
+        const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
+        double u[3], w[3], z[3];
+        for (int i = 0; i < 3; ++i) {
+          u[i] = double(q[i]) - a[i];
+          w[i] = double(r[i]) - a[i];
+          z[i] = double(r[i]) - q[i];
         }
-        atan2_degrees(ys, xs, angles, n);
-        for (int i = 0; i < n; ++i) {
-          lo = std::min(lo, angles[i]);
-          ++bins[std::min(kBins - 1, int(angles[i] * 100.0f))];
-        }
+        const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
+        const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
+        const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+        const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+        if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
+        ys[n] = float(std::sqrt(cx * cx + cy * cy + cz * cz));
+        xs[n] = float(0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2))));
+        ++n;
       }
-      mins[k] = lo;
+      atan2_degrees(ys, xs, angles, n);
+      for (int i = 0; i < n; ++i) {
+        lo = std::min(lo, angles[i]);
+        ++bins[std::min(kBins - 1, int(angles[i] * 100.0f))];
+      }
     }
-  });
+    std::lock_guard<std::mutex> lock(mutex);
+    min_angle = std::min(min_angle, lo);
+    for (int i = 0; i < kBins; ++i) all[i] += bins[i];
+  }, 1024);
   QualitySummary q;
   int64_t total = 0;
-  Array<int64_t> all(kBins, 0);
-  q.min_angle = 180;
-  for (int64_t k = 0; k < chunks; ++k) {
-    q.min_angle = std::min(q.min_angle, double(mins[k]));
-    for (int i = 0; i < kBins; ++i) { all[i] += hist[k][i]; total += hist[k][i]; }
-  }
+  for (int i = 0; i < kBins; ++i) total += all[i];
   if (total == 0) return QualitySummary();
+  q.min_angle = double(min_angle);
   const int64_t rank = std::max<int64_t>(1, int64_t(std::ceil(0.01 * double(total))));
   int64_t seen = 0;
   for (int i = 0; i < kBins; ++i) {

@@ -53,7 +53,7 @@ struct AngleSummary {
 
 // Summary over each interior edge once. Edges with theta >= |exclude_at_or_above|
 // (creases) are left out when it is > 0. |theta| may be null: computed on the fly.
-// Deterministic for any thread count (fixed chunks, combined in order).
+// Deterministic for any thread count (counts, the maximum and an exact sum).
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude_at_or_above = 0, int threads = 1);
 

@@ -11,6 +11,8 @@
 #include <mutex>
 #endif
 
+#include "core/parallel.h"
+
 #if defined(__linux__)
 extern "C" char end;  // the end of the program's data (end(3))
 #endif
@@ -92,8 +94,59 @@ ResidentRanges& resident() {
   return *r;
 }
 
+// Threads that fault in a large array's pages (PagePopulateThreads).
+thread_local int tl_populate_threads = 1;
+
+// Below this, one call on the calling thread: another thread's part would
+// save less than handing it over costs.
+constexpr uintptr_t kParallelPopulateBytes = uintptr_t(256) << 10;
+
+// MADV_POPULATE_WRITE over [b, e) (page aligned), in one part per thread for a
+// large range: whole 2 MB stretches (huge pages) per part where the range
+// holds more than one, else whole pages.
+void populate(uintptr_t b, uintptr_t e) {
+#if defined(MADV_POPULATE_WRITE)
+  const int threads = tl_populate_threads;
+  if (threads <= 1 || e - b < kParallelPopulateBytes || inside_parallel_for()) {
+    madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
+    return;
+  }
+  const uintptr_t unit = e - b >= 2 * kHugePageBytes ? uintptr_t(kHugePageBytes) : uintptr_t(4096);
+  const int64_t parts = threads;
+  auto cut = [&](int64_t p) {
+    if (p == parts) return e;
+    return std::max(b, (b + (e - b) / uintptr_t(parts) * uintptr_t(p)) & ~(unit - 1));
+  };
+  parallel_for_chunks(parts, threads, [&](int64_t p0, int64_t p1) {
+    for (int64_t p = p0; p < p1; ++p) {
+      const uintptr_t lo = cut(p), hi = cut(p + 1);
+      if (hi > lo) madvise(reinterpret_cast<void*>(lo), hi - lo, MADV_POPULATE_WRITE);
+    }
+  });
+#else
+  (void)b;
+  (void)e;
+#endif
+}
+
 }  // namespace
 #endif
+
+PagePopulateThreads::PagePopulateThreads(int threads) {
+#if defined(__linux__)
+  previous_ = tl_populate_threads;
+  tl_populate_threads = threads <= 0 ? hardware_threads() : threads;
+#else
+  (void)threads;
+  previous_ = 1;
+#endif
+}
+
+PagePopulateThreads::~PagePopulateThreads() {
+#if defined(__linux__)
+  tl_populate_threads = previous_;
+#endif
+}
 
 void forget_resident_memory() {
 #if defined(__linux__)
@@ -134,7 +187,7 @@ void prepare_pages(void* p, size_t bytes) {
   unsigned char v[kProbe];
   if (!(mincore(reinterpret_cast<void*>(from), e - from, v) == 0 &&
         std::all_of(v, v + (e - from) / kPage, [](unsigned char x) { return (x & 1) != 0; })))
-    madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
+    populate(b, e);
   if (heap) known.add(b, e);
 #endif
 #else

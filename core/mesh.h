@@ -37,6 +37,20 @@ void prepare_pages(void* p, size_t bytes);
 // the system (after malloc_trim): blocks it had found resident are asked
 // about again.
 void forget_resident_memory();
+// For its lifetime, the calling thread's prepare_pages faults in the pages of
+// a large array on up to |threads| threads (<= 0: all cores), a part each,
+// as the kernel zeroes every new page and two threads zero twice as many; the
+// refinement sets its own thread count. Not inside a parallel_for's pieces.
+class PagePopulateThreads {
+ public:
+  explicit PagePopulateThreads(int threads);
+  ~PagePopulateThreads();
+  PagePopulateThreads(const PagePopulateThreads&) = delete;
+  PagePopulateThreads& operator=(const PagePopulateThreads&) = delete;
+
+ private:
+  int previous_;
+};
 
 template <typename T>
 struct NoInitAllocator : std::allocator<T> {

@@ -22,6 +22,14 @@ namespace {
 
 using Body = std::function<void(int64_t, int64_t)>;
 
+// Set while this thread runs pieces of a loop (the workers always are).
+thread_local bool tl_in_loop = false;
+struct InLoop {
+  bool was = tl_in_loop;
+  InLoop() { tl_in_loop = true; }
+  ~InLoop() { tl_in_loop = was; }
+};
+
 inline void cpu_relax() {
 #if defined(__x86_64__) || defined(__i386__)
   __builtin_ia32_pause();
@@ -61,7 +69,10 @@ class Pool {
         s.wake.notify_one();
       }
     }
-    error = loop_.drain(0);
+    {
+      InLoop in_loop;
+      error = loop_.drain(0);
+    }
     for (int w = 0; w < workers; ++w) {
       Slot& s = *slots_[w];
       // Every piece is claimed and the caller's are done. A worker that has
@@ -157,6 +168,7 @@ class Pool {
   }
 
   static void work(Slot* s) {
+    tl_in_loop = true;
     uint64_t seen = 0;
     for (;;) {
       // Spin about 20 µs for the next loop, then sleep. (Longer spins measured
@@ -196,6 +208,8 @@ Pool& pool() {
 
 }  // namespace
 
+bool inside_parallel_for() { return tl_in_loop; }
+
 void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
   if (n <= 0) return;
   if (threads <= 0) threads = hardware_threads();
@@ -227,6 +241,7 @@ void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
   std::vector<std::thread> own;
   own.reserve(threads - 1);
   auto run = [&body, &errors](int t, int64_t b, int64_t e) {
+    InLoop in_loop;
     try {
       body(b, e);
     } catch (...) {

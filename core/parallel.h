@@ -18,6 +18,10 @@ void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int6
 
 int hardware_threads();
 
+// True while the calling thread runs pieces of a parallel_for of more than one
+// thread (a loop started there finds the pool busy and starts threads of its own).
+bool inside_parallel_for();
+
 }  // namespace iteas
 
 namespace iteas {

@@ -1078,6 +1078,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
 
   State s;
   s.threads = o.threads <= 0 ? hardware_threads() : o.threads;
+  const PagePopulateThreads populate_threads(s.threads);
   // Wedges without channels carry nothing: drop them (every vertex its own wedge).
   if (m.channels.empty()) { Array<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }
   if (std::all_of(m.face_group.begin(), m.face_group.end(), [](int32_t g) { return g == 0; }))

@@ -291,6 +291,58 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
   EXPECT_GE(checked, 10);
 }
 
+// The statistics gather counts, a maximum and an exact sum, so they do not
+// depend on how the faces are split over threads nor on the order of the
+// faces: the same mesh with its faces in reverse order (every edge is then
+// computed at the other face's corner, the angles summed in another order)
+// gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
+// chunks did not: its rounding followed the order.)
+TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
+  int checked = 0;
+  for (const std::string& path : test::valid_mesh_files()) {
+    Document d;
+    if (!test::load(path, &d).ok()) continue;
+    for (MeshSlot& s : d.meshes) {
+      if (s.mesh.num_faces() < 2000 || s.mesh.num_faces() > 60000) continue;
+      Mesh m = s.mesh;
+      Mesh r = m;
+      const int32_t nf = m.num_faces();
+      for (int32_t f = 0; f < nf; ++f)
+        for (int k = 0; k < 3; ++k) r.corner_vertex[3 * size_t(f) + k] = m.corner_vertex[3 * size_t(nf - 1 - f) + k];
+      CornerTable ct, rt;
+      ct.build(m, false, 1);
+      rt.build(r, false, 1);
+      Array<float> theta, rtheta;
+      edge_angles(m, ct, theta, 1);
+      edge_angles(r, rt, rtheta, 2);
+      const AngleSummary exact = summarize_angles(m, ct, &theta, 20.0, 0, 1);
+      const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 1);
+      const QualitySummary quality = triangle_quality(m, 1);
+      for (int threads : {1, 2, 3}) {
+        for (bool reversed : {false, true}) {
+          const Mesh& x = reversed ? r : m;
+          const CornerTable& xt = reversed ? rt : ct;
+          const AngleSummary e = summarize_angles(x, xt, reversed ? &rtheta : &theta, 20.0, 0, threads);
+          const AngleSummary f = summarize_angles(x, xt, nullptr, 20.0, 0, threads);
+          const QualitySummary q = triangle_quality(x, threads);
+          const std::string at = path + ", " + std::to_string(threads) + " threads" + (reversed ? ", reversed" : "");
+          EXPECT_EQ(e.edges, exact.edges) << at;
+          EXPECT_EQ(e.mean, exact.mean) << at;
+          EXPECT_EQ(e.max, exact.max) << at;
+          EXPECT_EQ(e.above, exact.above) << at;
+          EXPECT_EQ(e.histogram, exact.histogram) << at;
+          EXPECT_EQ(f.mean, fast.mean) << at;
+          EXPECT_EQ(f.above, fast.above) << at;
+          EXPECT_EQ(q.min_angle, quality.min_angle) << at;
+          EXPECT_EQ(q.p1_angle, quality.p1_angle) << at;
+        }
+      }
+      ++checked;
+    }
+  }
+  EXPECT_GE(checked, 5);
+}
+
 }  // namespace
 }  // namespace iteas
 
@@ -362,6 +414,21 @@ TEST(Parallel, PiecesAreEvenAndDealtEvenly) {
       EXPECT_EQ(lengths.size() % used, 0u) << threads << " threads, n " << c.n;
       if (c.n >= c.grain * used) EXPECT_GE(*shortest, c.grain) << threads << " threads, n " << c.n;
     }
+}
+
+// Pieces know they run inside a loop (prepare_pages then faults a large
+// array's pages in on its own thread instead of starting a nested loop), on
+// the caller and on the workers alike; the caller does not once it returns.
+TEST(Parallel, PiecesKnowTheyRunInsideALoop) {
+  EXPECT_FALSE(iteas::inside_parallel_for());
+  std::atomic<int64_t> outside{0}, pieces{0};
+  iteas::parallel_for(64, 2, [&](int64_t, int64_t) {
+    ++pieces;
+    if (!iteas::inside_parallel_for()) ++outside;
+  }, 1);
+  EXPECT_GT(pieces.load(), 1);
+  EXPECT_EQ(outside.load(), 0);
+  EXPECT_FALSE(iteas::inside_parallel_for());
 }
 
 // Loops that follow a serial step long enough for the workers to fall asleep:
