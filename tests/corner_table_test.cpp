@@ -303,7 +303,7 @@ TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
     Document d;
     if (!test::load(path, &d).ok()) continue;
     for (MeshSlot& s : d.meshes) {
-      if (s.mesh.num_faces() < 2000 || s.mesh.num_faces() > 60000) continue;
+      if (s.mesh.num_faces() < 500 || s.mesh.num_faces() > 60000) continue;
       Mesh m = s.mesh;
       Mesh r = m;
       const int32_t nf = m.num_faces();
@@ -340,7 +340,7 @@ TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
       ++checked;
     }
   }
-  EXPECT_GE(checked, 5);
+  EXPECT_GE(checked, test::corpus_dir().empty() ? 4 : 20);  // tests/data alone: knight, knot, bunny-npm, suzanne...
 }
 
 }  // namespace
