@@ -144,12 +144,15 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     std::fill(theta.data() + b, theta.data() + e, std::numeric_limits<float>::quiet_NaN());
   });
   // (The chunks only bound the normals cached: any size gives the same
-  // angles. On more than one thread, small enough that a small mesh splits
-  // evenly: an edge is computed by the chunk of its smaller corner, so the
-  // first chunks hold more of them. On one, larger: a neighbour outside the
+  // angles. On more than one thread, about eight per thread: an edge is
+  // computed by the chunk of its smaller corner, so where faces come in no
+  // spatial order the first chunks hold most of the edges (chunk k of n about
+  // (n - k) / n of its faces' edges), and a thread left with a long first
+  // chunk held the other up. On one, 4096 faces: a neighbour outside the
   // chunk has its normal computed on the fly, once per edge.)
-  const int64_t kFaces = threads == 1 ? 4096 : 1024;
-  const int64_t nf = nc / 3, chunks = (nf + kFaces - 1) / kFaces;
+  const int64_t nf = nc / 3;
+  const int64_t kFaces = threads == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * int64_t(threads))));
+  const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
   // The angle carried for corner c, or -1 when there is none (an angle is
@@ -221,7 +224,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     // sines and cosines go through small blocks on the stack.
     constexpr int kBlock = 1024;
     float ys[kBlock], xs[kBlock], ts[kBlock];
-    Array<float> cache(theta ? 0 : 3 * kFaces), gathered(theta ? 0 : 6 * kBlock);  // written before read
+    Array<float> cache(theta ? 0 : 3 * std::min(kFaces, e - b)), gathered(theta ? 0 : 6 * kBlock);  // written before read
     // Both normals of each edge of a block, one array per coordinate (none
     // when theta is given).
     float* soa[6] = {};
@@ -278,7 +281,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     total.max = std::max(total.max, double(max));
     total_sum += sum;
     for (int i = 0; i < 18; ++i) total.histogram[i] += hist[i];
-  }, theta ? 2048 : kFaces);  // computing normals: pieces of a block at least
+  }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
   total.mean = total.edges ? double(total_sum) / kUnits / double(total.edges) : 0;
   return total;
 }
@@ -384,7 +387,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
     std::lock_guard<std::mutex> lock(mutex);
     min_angle = std::min(min_angle, lo);
     for (int i = 0; i < kBins; ++i) all[i] += bins[i];
-  }, 1024);
+  }, 2048);  // each piece adds 6001 bins: not too many pieces
   QualitySummary q;
   int64_t total = 0;
   for (int i = 0; i < kBins; ++i) total += all[i];
