@@ -5,6 +5,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <mutex>
 #include <stdexcept>
 
@@ -312,9 +313,12 @@ TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
       CornerTable ct, rt;
       ct.build(m, false, 1);
       rt.build(r, false, 1);
-      Array<float> theta, rtheta;
+      Array<float> theta, rtheta, all_cores;
       edge_angles(m, ct, theta, 1);
       edge_angles(r, rt, rtheta, 2);
+      edge_angles(m, ct, all_cores, 0);  // 0: all cores (the chunks follow the thread count)
+      ASSERT_EQ(all_cores.size(), theta.size());
+      EXPECT_EQ(std::memcmp(all_cores.data(), theta.data(), theta.size() * sizeof(float)), 0) << path;
       const AngleSummary exact = summarize_angles(m, ct, &theta, 20.0, 0, 1);
       const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 1);
       const QualitySummary quality = triangle_quality(m, 1);
@@ -412,7 +416,9 @@ TEST(Parallel, PiecesAreEvenAndDealtEvenly) {
       const int used = int(std::min<int64_t>(threads, (c.n + c.grain - 1) / c.grain));
       EXPECT_LE(*longest - *shortest, 1) << threads << " threads, n " << c.n;
       EXPECT_EQ(lengths.size() % used, 0u) << threads << " threads, n " << c.n;
-      if (c.n >= c.grain * used) EXPECT_GE(*shortest, c.grain) << threads << " threads, n " << c.n;
+      if (c.n >= c.grain * used) {
+        EXPECT_GE(*shortest, c.grain) << threads << " threads, n " << c.n;
+      }
     }
 }
 
