@@ -99,7 +99,7 @@ thread_local int tl_populate_threads = 1;
 
 // Below this, one call on the calling thread: another thread's part would
 // save less than handing it over costs.
-constexpr uintptr_t kParallelPopulateBytes = uintptr_t(256) << 10;
+constexpr uintptr_t kParallelPopulateBytes = uintptr_t(64) << 10;
 
 // MADV_POPULATE_WRITE over [b, e) (page aligned), in one part per thread for a
 // large range: whole 2 MB stretches (huge pages) per part where the range
