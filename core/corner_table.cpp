@@ -302,16 +302,21 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   }
   int32_t* order = record_order ? fan_corner_.data() : nullptr;
   std::atomic<int64_t> cut_corners{0}, odd_cuts{0};
+  std::atomic<bool> any_several{false};
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     RunScratch scratch;
     Cuts cuts;
+    bool found = false;
     for (int64_t a = begin; a < end; ++a) {
       const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
       if (re == rb) continue;
       if (!match_run(vc, rb, re, opposite_.data(), order, cut_kind.data(), &cuts, split_vertices, vertex_corner_[a],
-                     fan_[a], scratch))
+                     fan_[a], scratch)) {
         several[a] = 1;
+        found = true;
+      }
     }
+    if (found) any_several.store(true, std::memory_order_relaxed);
     if (cuts.corners) cut_corners.fetch_add(cuts.corners, std::memory_order_relaxed);
     if (cuts.not_boundary) odd_cuts.fetch_add(cuts.not_boundary, std::memory_order_relaxed);
   }, kVertexGrain);
@@ -332,7 +337,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
       }
     }
   }
-  if (!split_vertices) return report;
+  if (!split_vertices || !any_several.load()) return report;  // no vertex to split
   // Fans: walk each vertex's corners; every fan after the first gets a new vertex.
   std::vector<uint8_t> visited(nc, 0);
   std::vector<int32_t> fan;
