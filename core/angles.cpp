@@ -151,7 +151,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   // chunk held the other up. On one, 4096 faces: a neighbour outside the
   // chunk has its normal computed on the fly, once per edge.)
   const int64_t nf = nc / 3;
-  const int64_t used = threads <= 0 ? hardware_threads() : threads;
+  const int64_t used = resolve_threads(threads);
   const int64_t kFaces = used == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * used)));
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();

@@ -39,15 +39,8 @@ struct VertexCorners {
     for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
     const int32_t* cv = corner_vertex.data();
     auto first_face = [nf, parts](int64_t p) { return int32_t(int64_t(nf) * p / parts); };
-    if (parts == 1) {
-      std::fill(offset.begin(), offset.end(), 0);
-      for (int32_t c = 0; c < nc; ++c) ++offset[size_t(cv[c]) + 1];
-      for (int32_t v = 0; v < nv; ++v) offset[v + 1] += offset[v];
-      std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
-      fill_part(cv, 0, nf, fill.data());
-      return;
-    }
-    // fill[p][v]: part p's count of v, then where its first corner of v goes.
+    // fill[p][v]: part p's count of v, then where its first corner of v goes
+    // (one part: the loops run on the calling thread).
     std::vector<std::vector<int32_t>> fill(parts);
     parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
       for (int64_t p = b; p < e; ++p) {
@@ -67,20 +60,20 @@ struct VertexCorners {
     }
     offset[nv] = total;
     parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
-      for (int64_t p = b; p < e; ++p) fill_part(cv, first_face(p), first_face(p + 1), fill[p].data());
+      for (int64_t p = b; p < e; ++p) {
+        int32_t* at = fill[p].data();
+        for (int32_t f = 3 * first_face(p), end = 3 * first_face(p + 1); f < end; f += 3)
+          for (int k = 0; k < 3; ++k) {
+            const int32_t i = at[cv[f + k]]++;
+            corners[i] = f + k;
+            nexts[i] = cv[f + (k + 1) % 3];
+            prevs[i] = cv[f + (k + 2) % 3];
+          }
+      }
     });
   }
   // Faces below this many per part are counted and filled on one thread.
   static constexpr int32_t kMinPartFaces = 1024;
-  void fill_part(const int32_t* cv, int32_t face_begin, int32_t face_end, int32_t* fill) {
-    for (int32_t f = 3 * face_begin, end = 3 * face_end; f < end; f += 3)
-      for (int k = 0; k < 3; ++k) {
-        const int32_t i = fill[cv[f + k]]++;
-        corners[i] = f + k;
-        nexts[i] = cv[f + (k + 1) % 3];
-        prevs[i] = cv[f + (k + 2) % 3];
-      }
-  }
   // The runs of some vertices only: run r holds the corners of the vertex v
   // with id[v] == r, in corner order as build() has them; |at| lists every
   // corner of those vertices in corner order.
@@ -188,10 +181,11 @@ struct RunScratch {
 // corner and its fan size. False, with |split|, for a vertex whose corners
 // form several fans (left to the splitting pass, nothing recorded for it).
 // |cut_kind| (per corner, may be null) says why a corner got no opposite;
-// |cuts| counts those corners, and those cut for another reason than the
-// boundary (non-manifold or orientation conflict).
+// |cuts| counts those corners and notes whether any was cut for another
+// reason than the boundary (non-manifold or orientation conflict).
 struct Cuts {
-  int64_t corners = 0, not_boundary = 0;
+  int64_t corners = 0;
+  bool not_boundary = false;
 };
 inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite, int32_t* order, uint8_t* cut_kind,
                       Cuts* cuts, bool split, int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
@@ -235,7 +229,7 @@ inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* 
     if (cut_kind) cut_kind[c] = kind;
     if (cuts) {
       ++cuts->corners;
-      cuts->not_boundary += kind != 0;
+      cuts->not_boundary |= kind != 0;
     }
   }
   // Left links are one-to-one, so the walk left meets the start again or ends.
@@ -301,8 +295,8 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
     fan_corner_.resize(nc);
   }
   int32_t* order = record_order ? fan_corner_.data() : nullptr;
-  std::atomic<int64_t> cut_corners{0}, odd_cuts{0};
-  std::atomic<bool> any_several{false};
+  std::atomic<int64_t> cut_corners{0};
+  std::atomic<bool> odd_cuts{false}, any_several{false};
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     RunScratch scratch;
     Cuts cuts;
@@ -318,13 +312,13 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
     }
     if (found) any_several.store(true, std::memory_order_relaxed);
     if (cuts.corners) cut_corners.fetch_add(cuts.corners, std::memory_order_relaxed);
-    if (cuts.not_boundary) odd_cuts.fetch_add(cuts.not_boundary, std::memory_order_relaxed);
+    if (cuts.not_boundary) odd_cuts.store(true, std::memory_order_relaxed);
   }, kVertexGrain);
   // Every corner without an opposite is a boundary edge after cutting; the
   // edges cut for another reason are told apart (each undirected edge counted
   // once, by its smallest corner) only when there are any.
   report.boundary_edges = cut_corners.load();
-  if (odd_cuts.load() > 0) {
+  if (odd_cuts.load()) {
     std::unordered_map<uint64_t, uint8_t> seen;
     for (int32_t c = 0; c < nc; ++c) {
       if (opposite_[c] >= 0 || cut_kind[c] == 0) continue;

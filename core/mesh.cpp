@@ -135,7 +135,7 @@ void populate(uintptr_t b, uintptr_t e) {
 PagePopulateThreads::PagePopulateThreads(int threads) {
 #if defined(__linux__)
   previous_ = tl_populate_threads;
-  tl_populate_threads = threads <= 0 ? hardware_threads() : threads;
+  tl_populate_threads = resolve_threads(threads);
 #else
   (void)threads;
   previous_ = 1;

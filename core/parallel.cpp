@@ -212,7 +212,7 @@ bool inside_parallel_for() { return tl_in_loop; }
 
 void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
   if (n <= 0) return;
-  if (threads <= 0) threads = hardware_threads();
+  threads = resolve_threads(threads);
   grain = std::max<int64_t>(1, grain);
   threads = static_cast<int>(std::min<int64_t>(threads, (n + grain - 1) / grain));
   if (threads <= 1) {

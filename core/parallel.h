@@ -17,6 +17,8 @@ namespace iteas {
 void parallel_for(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body, int64_t grain = 4096);
 
 int hardware_threads();
+// A thread count as the options give it: <= 0 means all cores.
+inline int resolve_threads(int threads) { return threads <= 0 ? hardware_threads() : threads; }
 
 // True while the calling thread runs pieces of a parallel_for of more than one
 // thread (a loop started there finds the pool busy and starts threads of its own).

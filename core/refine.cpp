@@ -1077,7 +1077,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   auto progress = [&](int level, const char* phase, double fr) { if (hooks.progress) hooks.progress(level, phase, fr); };
 
   State s;
-  s.threads = o.threads <= 0 ? hardware_threads() : o.threads;
+  s.threads = resolve_threads(o.threads);
   const PagePopulateThreads populate_threads(s.threads);
   // Wedges without channels carry nothing: drop them (every vertex its own wedge).
   if (m.channels.empty()) { Array<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }

@@ -299,52 +299,47 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
 // gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
 // chunks did not: its rounding followed the order.)
 TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
-  int checked = 0;
-  for (const std::string& path : test::valid_mesh_files()) {
-    Document d;
-    if (!test::load(path, &d).ok()) continue;
-    for (MeshSlot& s : d.meshes) {
-      if (s.mesh.num_faces() < 500 || s.mesh.num_faces() > 60000) continue;
-      Mesh m = s.mesh;
-      Mesh r = m;
-      const int32_t nf = m.num_faces();
-      for (int32_t f = 0; f < nf; ++f)
-        for (int k = 0; k < 3; ++k) r.corner_vertex[3 * size_t(f) + k] = m.corner_vertex[3 * size_t(nf - 1 - f) + k];
-      CornerTable ct, rt;
-      ct.build(m, false, 1);
-      rt.build(r, false, 1);
-      Array<float> theta, rtheta, all_cores;
-      edge_angles(m, ct, theta, 1);
-      edge_angles(r, rt, rtheta, 2);
-      edge_angles(m, ct, all_cores, 0);  // 0: all cores (the chunks follow the thread count)
-      ASSERT_EQ(all_cores.size(), theta.size());
-      EXPECT_EQ(std::memcmp(all_cores.data(), theta.data(), theta.size() * sizeof(float)), 0) << path;
-      const AngleSummary exact = summarize_angles(m, ct, &theta, 20.0, 0, 1);
-      const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 1);
-      const QualitySummary quality = triangle_quality(m, 1);
-      for (int threads : {1, 2, 3}) {
-        for (bool reversed : {false, true}) {
-          const Mesh& x = reversed ? r : m;
-          const CornerTable& xt = reversed ? rt : ct;
-          const AngleSummary e = summarize_angles(x, xt, reversed ? &rtheta : &theta, 20.0, 0, threads);
-          const AngleSummary f = summarize_angles(x, xt, nullptr, 20.0, 0, threads);
-          const QualitySummary q = triangle_quality(x, threads);
-          const std::string at = path + ", " + std::to_string(threads) + " threads" + (reversed ? ", reversed" : "");
-          EXPECT_EQ(e.edges, exact.edges) << at;
-          EXPECT_EQ(e.mean, exact.mean) << at;
-          EXPECT_EQ(e.max, exact.max) << at;
-          EXPECT_EQ(e.above, exact.above) << at;
-          EXPECT_EQ(e.histogram, exact.histogram) << at;
-          EXPECT_EQ(f.mean, fast.mean) << at;
-          EXPECT_EQ(f.above, fast.above) << at;
-          EXPECT_EQ(q.min_angle, quality.min_angle) << at;
-          EXPECT_EQ(q.p1_angle, quality.p1_angle) << at;
-        }
+  const std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
+  for (const test::NamedMesh& c : meshes) {
+    Mesh m = c.mesh;
+    const std::string& path = c.name;
+    Mesh r = m;
+    const int32_t nf = m.num_faces();
+    for (int32_t f = 0; f < nf; ++f)
+      for (int k = 0; k < 3; ++k) r.corner_vertex[3 * size_t(f) + k] = m.corner_vertex[3 * size_t(nf - 1 - f) + k];
+    CornerTable ct, rt;
+    ct.build(m, false, 1);
+    rt.build(r, false, 1);
+    Array<float> theta, rtheta, all_cores;
+    edge_angles(m, ct, theta, 1);
+    edge_angles(r, rt, rtheta, 2);
+    edge_angles(m, ct, all_cores, 0);  // 0: all cores (the chunks follow the thread count)
+    ASSERT_EQ(all_cores.size(), theta.size());
+    EXPECT_EQ(std::memcmp(all_cores.data(), theta.data(), theta.size() * sizeof(float)), 0) << path;
+    const AngleSummary exact = summarize_angles(m, ct, &theta, 20.0, 0, 1);
+    const AngleSummary fast = summarize_angles(m, ct, nullptr, 20.0, 0, 1);
+    const QualitySummary quality = triangle_quality(m, 1);
+    for (int threads : {1, 2, 3}) {
+      for (bool reversed : {false, true}) {
+        const Mesh& x = reversed ? r : m;
+        const CornerTable& xt = reversed ? rt : ct;
+        const AngleSummary e = summarize_angles(x, xt, reversed ? &rtheta : &theta, 20.0, 0, threads);
+        const AngleSummary f = summarize_angles(x, xt, nullptr, 20.0, 0, threads);
+        const QualitySummary q = triangle_quality(x, threads);
+        const std::string at = path + ", " + std::to_string(threads) + " threads" + (reversed ? ", reversed" : "");
+        EXPECT_EQ(e.edges, exact.edges) << at;
+        EXPECT_EQ(e.mean, exact.mean) << at;
+        EXPECT_EQ(e.max, exact.max) << at;
+        EXPECT_EQ(e.above, exact.above) << at;
+        EXPECT_EQ(e.histogram, exact.histogram) << at;
+        EXPECT_EQ(f.mean, fast.mean) << at;
+        EXPECT_EQ(f.above, fast.above) << at;
+        EXPECT_EQ(q.min_angle, quality.min_angle) << at;
+        EXPECT_EQ(q.p1_angle, quality.p1_angle) << at;
       }
-      ++checked;
     }
   }
-  EXPECT_GE(checked, test::corpus_dir().empty() ? 4 : 20);  // tests/data alone: knight, knot, bunny-npm, suzanne...
+  EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 4u : 20u);  // tests/data alone: knight, knot, bunny-npm, suzanne...
 }
 
 }  // namespace

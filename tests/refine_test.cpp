@@ -14,23 +14,9 @@
 namespace iteas {
 namespace {
 
-struct Case {
-  std::string name;
-  Mesh mesh;
-};
-
-// Shipped meshes plus the corpus when present; big ones are left to the
-// corpus-wide CLI test to keep this suite quick.
-std::vector<Case> cases(int64_t max_triangles) {
-  std::vector<Case> out;
-  for (const std::string& path : test::valid_mesh_files()) {
-    Document d;
-    if (!test::load(path, &d).ok()) continue;
-    for (MeshSlot& s : d.meshes)
-      if (s.mesh.num_faces() <= max_triangles) out.push_back({path + "#" + std::to_string(&s - d.meshes.data()), s.mesh});
-  }
-  return out;
-}
+using Case = test::NamedMesh;
+// Shipped meshes plus the corpus when present, up to |max_triangles|.
+std::vector<Case> cases(int64_t max_triangles) { return test::valid_meshes(max_triangles); }
 
 RefineOptions opts(Mode mode, int levels, int threads = 2) {
   RefineOptions o;

@@ -57,6 +57,18 @@ Status load(const std::string& path, Document* doc) {
   return read_document(b.data(), b.size(), sniff_format(b.data(), b.size(), path), ReadLimits(), doc);
 }
 
+std::vector<NamedMesh> valid_meshes(int64_t max_faces, int64_t min_faces) {
+  std::vector<NamedMesh> out;
+  for (const std::string& path : valid_mesh_files()) {
+    Document d;
+    if (!load(path, &d).ok()) continue;  // point clouds: covered by the io tests
+    for (MeshSlot& s : d.meshes)
+      if (s.mesh.num_faces() >= min_faces && s.mesh.num_faces() <= max_faces)
+        out.push_back({path + "#" + std::to_string(&s - d.meshes.data()), s.mesh});
+  }
+  return out;
+}
+
 EdgeFacts edge_facts(const Mesh& m) {
   struct Use { int32_t forward = 0, backward = 0; };
   std::map<std::pair<int32_t, int32_t>, Use> uses;

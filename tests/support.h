@@ -22,6 +22,15 @@ std::vector<std::string> nasty_files();
 
 Status load(const std::string& path, Document* doc);
 
+// Every mesh of the valid files that loads, with between |min_faces| and
+// |max_faces| triangles; named "path#index" (big ones are left to the
+// corpus-wide CLI test to keep the suites quick).
+struct NamedMesh {
+  std::string name;
+  Mesh mesh;
+};
+std::vector<NamedMesh> valid_meshes(int64_t max_faces, int64_t min_faces = 0);
+
 // Facts computed by brute force from faces alone (by vertex index).
 struct EdgeFacts {
   int64_t edges = 0;            // undirected
