@@ -4,6 +4,10 @@
 #include <cmath>
 #include <type_traits>
 
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
 #include "core/parallel.h"
 
 namespace iteas {
@@ -143,8 +147,9 @@ namespace {
 // What the rules read, as raw arrays. kGreens is false when the level has no
 // green pairs (every uniform level): all of the green handling then compiles
 // away and a stencil is a handful of loads.
-template <bool kGreens>
+template <bool kGreens_>
 struct View {
+  static constexpr bool kGreens = kGreens_;
   const CornerTable* ct;  // fan walks
   const int32_t* cv;
   const int32_t* opp;
@@ -481,7 +486,7 @@ void four_point(const View<G>& m, int32_t v1, int32_t v2, Sink& out) {
 }
 
 template <bool G, typename Sink>
-void rules(const View<G>& m, int32_t c, Sink& out) {
+ITEAS_INLINE void rules(const View<G>& m, int32_t c, Sink& out) {
   const int32_t v1 = m.cv[next_corner(c)], v2 = m.cv[prev_corner(c)];
   const int32_t d = m.opp[c];
   if (d < 0 || m.is_sharp(c)) {
@@ -535,6 +540,35 @@ void rules(const View<G>& m, int32_t c, Sink& out) {
   wing(m, next_corner(d), pg, -1.0 / 16.0, out);
 }
 
+// The regular stencil's sum over its eight points q: v1, v2, the two
+// opposite vertices a and b, the four wings w1..w4.
+// 1/2 (v1 + v2) + 1/8 (a + b) - 1/16 (w1 + w2 + w3 + w4), in double.
+ITEAS_INLINE void regular_sum(const float* positions, const int32_t* q, float* out) {
+#if defined(__SSE2__)
+  // x and y as a pair of doubles, z alone: the same sums in the same order.
+  struct P { __m128d xy, z; };
+  auto load = [positions](int32_t v) {
+    const float* p = positions + 3 * size_t(v);
+    return P{load_xy(p), _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
+  };
+  auto add = [](P a, P b) { return P{_mm_add_pd(a.xy, b.xy), _mm_add_sd(a.z, b.z)}; };
+  auto mul = [](double s, P a) { return P{_mm_mul_pd(_mm_set1_pd(s), a.xy), _mm_mul_sd(_mm_set_sd(s), a.z)}; };
+  const P e = add(load(q[0]), load(q[1])), f = add(load(q[2]), load(q[3]));
+  const P g = add(add(add(load(q[4]), load(q[5])), load(q[6])), load(q[7]));
+  const P r = add(add(mul(0.5, e), mul(0.125, f)), mul(-1.0 / 16.0, g));
+  store_xy(out, r.xy);
+  _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), r.z));
+#else
+  const float* p[8];
+  for (int i = 0; i < 8; ++i) p[i] = positions + 3 * size_t(q[i]);
+  for (int k = 0; k < 3; ++k) {
+    const double e = double(p[0][k]) + double(p[1][k]), f = double(p[2][k]) + double(p[3][k]);
+    const double g = ((double(p[4][k]) + double(p[5][k])) + double(p[6][k])) + double(p[7][k]);
+    out[k] = float((0.5 * e + 0.125 * f) + (-1.0 / 16.0) * g);
+  }
+#endif
+}
+
 // The common case, spelled out: an interior edge between two complete
 // valence-6 vertices, no tension, no wing across a sharp edge, no green pair
 // involved. The eight points are summed by weight class (both paths that
@@ -557,32 +591,8 @@ ITEAS_INLINE bool regular_point(const View<G>& m, int32_t c, const float* positi
     if (G && m.green_of(o)) return false;
     wv[i] = m.cv[o];
   }
-  // 1/2 (v1 + v2) + 1/8 (a + b) - 1/16 (w1 + w2 + w3 + w4), in double.
-#if defined(__SSE2__)
-  // x and y as a pair of doubles, z alone: the same sums in the same order.
-  struct P { __m128d xy, z; };
-  auto load = [positions](int32_t v) {
-    const float* p = positions + 3 * size_t(v);
-    return P{load_xy(p), _mm_cvtss_sd(_mm_setzero_pd(), _mm_load_ss(p + 2))};
-  };
-  auto add = [](P a, P b) { return P{_mm_add_pd(a.xy, b.xy), _mm_add_sd(a.z, b.z)}; };
-  auto mul = [](double s, P a) { return P{_mm_mul_pd(_mm_set1_pd(s), a.xy), _mm_mul_sd(_mm_set_sd(s), a.z)}; };
-  const P e = add(load(v1), load(v2)), f = add(load(m.cv[c]), load(m.cv[d]));
-  const P g = add(add(add(load(wv[0]), load(wv[1])), load(wv[2])), load(wv[3]));
-  const P r = add(add(mul(0.5, e), mul(0.125, f)), mul(-1.0 / 16.0, g));
-  store_xy(out, r.xy);
-  _mm_store_ss(out + 2, _mm_cvtsd_ss(_mm_setzero_ps(), r.z));
-#else
-  const float* q[8] = {positions + 3 * size_t(v1),    positions + 3 * size_t(v2),
-                       positions + 3 * size_t(m.cv[c]), positions + 3 * size_t(m.cv[d]),
-                       positions + 3 * size_t(wv[0]), positions + 3 * size_t(wv[1]),
-                       positions + 3 * size_t(wv[2]), positions + 3 * size_t(wv[3])};
-  for (int k = 0; k < 3; ++k) {
-    const double e = double(q[0][k]) + double(q[1][k]), f = double(q[2][k]) + double(q[3][k]);
-    const double g = ((double(q[4][k]) + double(q[5][k])) + double(q[6][k])) + double(q[7][k]);
-    out[k] = float((0.5 * e + 0.125 * f) + (-1.0 / 16.0) * g);
-  }
-#endif
+  const int32_t q[8] = {v1, v2, m.cv[c], m.cv[d], wv[0], wv[1], wv[2], wv[3]};
+  regular_sum(positions, q, out);
   return true;
 }
 
@@ -592,6 +602,124 @@ void with_view(const ButterflyContext& ctx, F&& f) {
   if (ctx.green && !ctx.green->empty()) f(View<true>(ctx));
   else f(View<false>(ctx));
 }
+
+// regular_point's vertices where the level has no green pair, no crease
+// flag and no tension (every uniform level without creases): the checks left
+// are the fans' flags and, defensively, the boundary.
+ITEAS_INLINE bool plain_regular_vertices(const int32_t* cv, const int32_t* opp, const uint8_t* complete, int32_t c,
+                                         int32_t* q) {
+  const int32_t nc = next_corner(c), pc = prev_corner(c);
+  const int32_t v1 = cv[nc], v2 = cv[pc];
+  if ((complete[v1] & complete[v2]) != VertexClass::kRegular) return false;
+  const int32_t d = opp[c];
+  if (d < 0) return false;
+  const int32_t nd = next_corner(d), pd = prev_corner(d);
+  const int32_t o0 = opp[pc], o1 = opp[nc], o2 = opp[pd], o3 = opp[nd];
+  if ((o0 | o1 | o2 | o3) < 0) return false;
+  q[0] = v1;
+  q[1] = v2;
+  q[2] = cv[c];
+  q[3] = cv[d];
+  q[4] = cv[o0];
+  q[5] = cv[o1];
+  q[6] = cv[o2];
+  q[7] = cv[o3];
+  return true;
+}
+
+struct SseSum {
+  ITEAS_INLINE void operator()(const float* positions, const int32_t* q, float* out) const {
+    regular_sum(positions, q, out);
+  }
+};
+
+#if defined(__GNUC__) && defined(__x86_64__)
+#define ITEAS_AVX_SUM 1
+// regular_sum with x, y and z of a point in one register of four doubles:
+// the same operations in the same order on each coordinate (no FMA: AVX
+// alone has none), so the same bits, in half the instructions. Chosen at run
+// time (plain_points_avx) where the processor has AVX.
+struct AvxSum {
+  __attribute__((target("avx"))) inline void operator()(const float* positions, const int32_t* q,
+                                                        float* out) const {
+    auto load = [positions](int32_t v) __attribute__((target("avx"))) {
+      const float* p = positions + 3 * size_t(v);
+      const __m128 xy = _mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(p)));
+      return _mm256_cvtps_pd(_mm_movelh_ps(xy, _mm_load_ss(p + 2)));
+    };
+    const __m256d e = _mm256_add_pd(load(q[0]), load(q[1]));
+    const __m256d f = _mm256_add_pd(load(q[2]), load(q[3]));
+    const __m256d g = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(load(q[4]), load(q[5])), load(q[6])), load(q[7]));
+    const __m256d r = _mm256_add_pd(
+        _mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(0.5), e), _mm256_mul_pd(_mm256_set1_pd(0.125), f)),
+        _mm256_mul_pd(_mm256_set1_pd(-1.0 / 16.0), g));
+    const __m128 rf = _mm256_cvtpd_ps(r);
+    _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(rf));
+    _mm_store_ss(out + 2, _mm_movehl_ps(rf, rf));
+  }
+};
+#endif
+
+// The points of a list of edges. Everything the loop reads is a local: the
+// stores through |out| may alias anything in memory, and a view or captures
+// read through a reference were reloaded after each of them. |sum| (kPlain
+// only) sums a regular stencil's eight points.
+template <bool G, bool kPlain, typename Sum = SseSum>
+ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t count, const float* positions,
+                            float* out, Sum sum = Sum()) {
+  const int32_t* const cv = view.cv;
+  const int32_t* const opp = view.opp;
+  const uint8_t* const complete = view.complete;
+  // The faces across a few edges ahead are asked for early: an edge's
+  // wings are read through its opposite (corner, opposite, its neighbours,
+  // their vertices, one load waiting on the other), and on large levels
+  // those faces are not in cache (level 4: about 6 % less time; 6 to 24
+  // edges ahead measured alike; also asking for the positions was slower).
+  constexpr int64_t kAhead = 12;
+  for (int64_t i = 0; i < count; ++i) {
+    if (i + kAhead < count) {
+      const int32_t d = opp[corners[i + kAhead]];
+      if (d >= 0) {
+        __builtin_prefetch(opp + d);
+        __builtin_prefetch(cv + d);
+      }
+    }
+    const int32_t c = corners[i];
+    if (kPlain) {
+      int32_t q[8];
+      if (plain_regular_vertices(cv, opp, complete, c, q)) {
+        sum(positions, q, out + 3 * i);
+        continue;
+      }
+    } else if (regular_point(view, c, positions, out + 3 * i)) {
+      continue;
+    }
+    PointSum sink{positions};
+    rules(view, c, sink);
+    for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sink.p[k]);
+  }
+}
+
+void plain_points(const View<false>& view, const int32_t* corners, int64_t count, const float* positions,
+                  float* out) {
+  points_of<false, true>(view, corners, count, positions, out);
+}
+
+#if ITEAS_AVX_SUM
+__attribute__((target("avx"))) void plain_points_avx(const View<false>& view, const int32_t* corners, int64_t count,
+                                                     const float* positions, float* out) {
+  points_of<false, true, AvxSum>(view, corners, count, positions, out);
+}
+// Asked once, on first use (__builtin_cpu_init: safe even before the
+// libgcc constructor that would set the answer up has run).
+bool has_avx() {
+  static const bool yes = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx") != 0;
+  }();
+  return yes;
+}
+#endif
 
 }  // namespace
 
@@ -607,27 +735,18 @@ void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positi
 
 void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
                       float* out) {
-  with_view(ctx, [&](const auto& view) {
-    // The faces across a few edges ahead are asked for early: an edge's
-    // wings are read through its opposite (corner, opposite, its neighbours,
-    // their vertices, one load waiting on the other), and on large levels
-    // those faces are not in cache (level 4: about 6 % less time; 6 to 24
-    // edges ahead measured alike; also asking for the positions was slower).
-    constexpr int64_t kAhead = 12;
-    for (int64_t i = 0; i < count; ++i) {
-      if (i + kAhead < count) {
-        const int32_t d = view.opp[corners[i + kAhead]];
-        if (d >= 0) {
-          __builtin_prefetch(view.opp + d);
-          __builtin_prefetch(view.cv + d);
-        }
-      }
-      if (regular_point(view, corners[i], positions, out + 3 * i)) continue;
-      PointSum sink{positions};
-      rules(view, corners[i], sink);
-      for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sink.p[k]);
+  if (!(ctx.green && !ctx.green->empty()) && ctx.tension == 0 && !(ctx.sharp && !ctx.sharp->empty())) {
+    const View<false> view(ctx);
+#if ITEAS_AVX_SUM
+    if (ctx.wide_sums && has_avx()) {
+      plain_points_avx(view, corners, count, positions, out);
+      return;
     }
-  });
+#endif
+    plain_points(view, corners, count, positions, out);
+    return;
+  }
+  with_view(ctx, [&](const auto& view) { points_of<std::decay_t<decltype(view)>::kGreens, false>(view, corners, count, positions, out); });
 }
 
 }  // namespace iteas

@@ -64,6 +64,9 @@ struct ButterflyContext {
   // Optional (null: walk the fans); valid only for the level and positions it
   // was built on, and never used with green pairs.
   const RingTable* rings = nullptr;
+  // Regular stencils summed with AVX where the processor has it (the same
+  // bits as SSE2, fewer instructions); false: SSE2 only, for tests.
+  bool wide_sums = true;
 };
 
 // Removes the bisecting edges of green pairs from the apex valences.

@@ -279,6 +279,42 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
   EXPECT_GT(ringed, 1000);  // the tables were used, not just empty
 }
 
+// Levels without creases, tension or green pairs take a shorter path
+// (butterfly_points' plain loop; sums with AVX where the processor has it):
+// every point must be the general path's, bit for bit, with either sum.
+TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
+  int64_t edges = 0;
+  for (const Case& c : cases(8000)) {
+    for (int levels : {0, 1}) {
+      Mesh m = prepared(c.mesh);
+      if (levels > 0) m = refined(m, opts(Mode::kUniform, levels));
+      CornerTable ct;
+      ct.build(m, false, 1);
+      std::vector<uint8_t> flags, none;
+      ButterflyContext ctx;
+      ctx.mesh = &m;
+      ctx.ct = &ct;
+      mark_sharp_edges(ct, nullptr, 0, flags, 1);  // the boundary, as flags
+      classify_vertices(m, ct, flags, ctx.vclass, 2);
+      std::vector<int32_t> corners;
+      for (int32_t x = 0; x < ct.num_corners(); ++x)
+        if (ct.opposite(x) < x) corners.push_back(x);
+      const size_t n = 3 * corners.size();
+      std::vector<float> general(n), plain_wide(n), plain_sse(n);
+      ctx.sharp = &flags;
+      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), general.data());
+      ctx.sharp = &none;
+      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), plain_wide.data());
+      ctx.wide_sums = false;
+      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), plain_sse.data());
+      EXPECT_EQ(std::memcmp(general.data(), plain_wide.data(), n * sizeof(float)), 0) << c.name << " " << levels;
+      EXPECT_EQ(std::memcmp(general.data(), plain_sse.data(), n * sizeof(float)), 0) << c.name << " " << levels;
+      edges += int64_t(corners.size());
+    }
+  }
+  EXPECT_GT(edges, 10000);
+}
+
 // The uniform path does not walk for its rings: on the input it copies the
 // fans the corner table recorded, on later levels it carries the rings over
 // from the level before. Both must give the walk's table, bit for bit.
