@@ -64,11 +64,11 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 }
 
 namespace {
-void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads);
+void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads, bool wide);
 }  // namespace
 
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads) {
+                 int threads, bool wide_sums) {
   const int32_t* cv = mesh.corner_vertex.data();
   if (out.carried) {
     out.carried = false;
@@ -79,7 +79,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
         out.neighbour[i] = x >= 0 ? cv[next_corner(x)] : -1;
       }
     });
-    ring_points(mesh, vclass, out, threads);
+    ring_points(mesh, vclass, out, threads, wide_sums);
     return;
   }
   limit = std::min(limit, mesh.num_vertices());
@@ -115,7 +115,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       }
     }
   }, 512);
-  ring_points(mesh, vclass, out, threads);
+  ring_points(mesh, vclass, out, threads, wide_sums);
 }
 
 void carry_rings(RingTable& rings) {
@@ -231,6 +231,21 @@ struct WeightTable {
 };
 const WeightTable kWeights;  // immutable after static initialisation
 
+#if defined(__GNUC__) && defined(__x86_64__)
+// Sums with AVX where the processor has it (regular stencils and ring
+// points; the same bits as SSE2).
+#define ITEAS_AVX_SUM 1
+// Asked once, on first use (__builtin_cpu_init: safe even before the
+// libgcc constructor that would set the answer up has run).
+bool has_avx() {
+  static const bool yes = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx") != 0;
+  }();
+  return yes;
+}
+#endif
+
 #if defined(__SSE2__)
 // A point's x and y (two floats, any alignment) as a pair of doubles, and a
 // pair rounded back to two floats. Lanes round as scalars do, so packed sums
@@ -302,31 +317,108 @@ void ring_points_any(const float* pos, const float* x, int K, const int32_t* nb,
   }
 }
 
-void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads) {
-  rings.point.resize(3 * rings.neighbour.size());
-  const float* pos = mesh.positions.data();
-  parallel_for(int64_t(rings.offset.size()), threads, [&](int64_t b, int64_t e) {
-    for (int64_t v = b; v < e; ++v) {
-      const int32_t off = rings.offset[v];
-      if (off < 0) continue;
-      const int K = vclass.valence[v];
-      const int32_t* nb = rings.neighbour.data() + off;
-      const float* x = pos + 3 * size_t(v);
-      float* out = rings.point.data() + 3 * size_t(off);
+// The arrays ring_points reads and writes, as locals of its loop (the
+// packed stores may alias anything that lives in memory).
+struct RingArrays {
+  const int32_t* offset;
+  const int32_t* valence;
+  const int32_t* neighbour;
+  const float* pos;
+  float* point;
+};
+
+// Calls kernel(std::integral_constant<int, K>()) for the valences that have
+// a summing function of their own (false for the others).
+template <typename F>
+ITEAS_INLINE bool with_ring_kernel(int K, F&& kernel) {
+  switch (K) {
+    case 3: kernel(std::integral_constant<int, 3>()); return true;
+    case 4: kernel(std::integral_constant<int, 4>()); return true;
+    case 5: kernel(std::integral_constant<int, 5>()); return true;
+    case 7: kernel(std::integral_constant<int, 7>()); return true;
+    case 8: kernel(std::integral_constant<int, 8>()); return true;
+    case 9: kernel(std::integral_constant<int, 9>()); return true;
+    case 10: kernel(std::integral_constant<int, 10>()); return true;
+    default: return false;
+  }
+}
+
+// The rule points of the ringed vertices in [b, e): |sums|(pos, x, nb, out,
+// valence constant) where it has a function for the valence, else
+// ring_points_any.
+template <typename Sums>
+ITEAS_INLINE void ring_points_range(const RingArrays& r, int64_t b, int64_t e, Sums sums) {
+  for (int64_t v = b; v < e; ++v) {
+    const int32_t off = r.offset[v];
+    if (off < 0) continue;
+    const int K = r.valence[v];
+    const int32_t* nb = r.neighbour + off;
+    const float* x = r.pos + 3 * size_t(v);
+    float* out = r.point + 3 * size_t(off);
+    if (!with_ring_kernel(K, [&](auto k) { sums(r.pos, x, nb, out, k); })) ring_points_any(r.pos, x, K, nb, out);
+  }
+}
+
+void ring_points_range_sse(const RingArrays r, int64_t b, int64_t e) {
 #if defined(__SSE2__)
-      switch (K) {
-        case 3: ring_points_of<3>(pos, x, nb, out); continue;
-        case 4: ring_points_of<4>(pos, x, nb, out); continue;
-        case 5: ring_points_of<5>(pos, x, nb, out); continue;
-        case 7: ring_points_of<7>(pos, x, nb, out); continue;
-        case 8: ring_points_of<8>(pos, x, nb, out); continue;
-        case 9: ring_points_of<9>(pos, x, nb, out); continue;
-        case 10: ring_points_of<10>(pos, x, nb, out); continue;
-        default: break;
-      }
+  ring_points_range(r, b, e, [](const float* pos, const float* x, const int32_t* nb, float* out, auto k) {
+    ring_points_of<decltype(k)::value>(pos, x, nb, out);
+  });
+#else
+  ring_points_range(r, b, e, [](const float*, const float*, const int32_t*, float*, auto) {});
 #endif
-      ring_points_any(pos, x, K, nb, out);
+}
+
+#if ITEAS_AVX_SUM
+// ring_points_of with a point's x, y and z in one register of four doubles:
+// the same operations in the same order on each coordinate, so the same bits.
+template <int K>
+__attribute__((target("avx"))) inline void ring_points_avx(const float* pos, const float* x, const int32_t* nb,
+                                                           float* out) {
+  const double* w = kWeights.w[K];
+  const __m128i three = _mm_set_epi32(0, -1, -1, -1);  // x, y, z; the fourth float is not read
+  __m256d p[2 * K];  // the ring twice over: point i's j-th term is ring[i + j]
+  for (int j = 0; j < K; ++j) p[j] = p[j + K] = _mm256_cvtps_pd(_mm_maskload_ps(pos + 3 * size_t(nb[j]), three));
+  const __m256d c =
+      _mm256_add_pd(_mm256_setzero_pd(), _mm256_mul_pd(_mm256_set1_pd(0.75), _mm256_cvtps_pd(_mm_maskload_ps(x, three))));
+  __m256d sum[K];
+  for (int i = 0; i < K; ++i) sum[i] = c;
+  for (int j = 0; j < K; ++j) {
+    const double s = w[j];
+    if (s == 0.0) continue;
+    const __m256d sv = _mm256_set1_pd(s);
+    for (int i = 0; i < K; ++i) sum[i] = _mm256_add_pd(sum[i], _mm256_mul_pd(sv, p[i + j]));
+  }
+  for (int i = 0; i < K; ++i) {
+    const __m128 f = _mm256_cvtpd_ps(sum[i]);
+    _mm_storel_epi64(reinterpret_cast<__m128i*>(out + 3 * i), _mm_castps_si128(f));
+    _mm_store_ss(out + 3 * i + 2, _mm_movehl_ps(f, f));
+  }
+}
+
+__attribute__((target("avx"))) void ring_points_range_avx(const RingArrays r, int64_t b, int64_t e) {
+  ring_points_range(r, b, e, [](const float* pos, const float* x, const int32_t* nb, float* out, auto k)
+                                 __attribute__((target("avx"))) { ring_points_avx<decltype(k)::value>(pos, x, nb, out); });
+}
+#endif
+
+void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads, bool wide) {
+  rings.point.resize(3 * rings.neighbour.size());
+  const RingArrays r{rings.offset.data(), vclass.valence.data(), rings.neighbour.data(), mesh.positions.data(),
+                     rings.point.data()};
+#if ITEAS_AVX_SUM
+  wide = wide && has_avx();
+#else
+  wide = false;
+#endif
+  parallel_for(int64_t(rings.offset.size()), threads, [&](int64_t b, int64_t e) {
+#if ITEAS_AVX_SUM
+    if (wide) {
+      ring_points_range_avx(r, b, e);
+      return;
     }
+#endif
+    ring_points_range_sse(r, b, e);
   }, 256);
 }
 
@@ -633,8 +725,7 @@ struct SseSum {
   }
 };
 
-#if defined(__GNUC__) && defined(__x86_64__)
-#define ITEAS_AVX_SUM 1
+#if ITEAS_AVX_SUM
 // regular_sum with x, y and z of a point in one register of four doubles:
 // the same operations in the same order on each coordinate (no FMA: AVX
 // alone has none), so the same bits, in half the instructions. A point is
@@ -710,15 +801,6 @@ void plain_points(const View<false>& view, const int32_t* corners, int64_t count
 __attribute__((target("avx"))) void plain_points_avx(const View<false>& view, const int32_t* corners, int64_t count,
                                                      const float* positions, float* out) {
   points_of<false, true, AvxSum>(view, corners, count, positions, out);
-}
-// Asked once, on first use (__builtin_cpu_init: safe even before the
-// libgcc constructor that would set the answer up has run).
-bool has_avx() {
-  static const bool yes = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx") != 0;
-  }();
-  return yes;
 }
 #endif
 

@@ -87,8 +87,9 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 // Rings of the extraordinary vertices below |limit| on the current level:
 // carried over from the level before (|out|.carried), else read from the fans
 // the corner table recorded (CornerTable::fan_order), else walked.
+// |wide_sums| as in ButterflyContext (false: SSE2 only, for tests).
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads = 1);
+                 int threads = 1, bool wide_sums = true);
 
 // After a uniform split of this level (children of face f are 4f..4f+3, child
 // k keeping corner k): keeps only the rings' corners, moved to the children,

@@ -249,9 +249,14 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
       ctx.sharp = &sharp;
       mark_sharp_edges(ct, nullptr, 0, sharp, 1);
       classify_vertices(m, ct, sharp, ctx.vclass, 2);
-      RingTable rings;
+      RingTable rings, narrow;
       build_rings(m, ct, ctx.vclass, m.num_vertices(), rings, 2);
       for (int32_t off : rings.offset) ringed += off >= 0;
+      // The rule points summed with AVX (where the processor has it) and
+      // with SSE2 alone: the same bits.
+      build_rings(m, ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide_sums=*/false);
+      ASSERT_EQ(rings.point.size(), narrow.point.size());
+      EXPECT_EQ(std::memcmp(rings.point.data(), narrow.point.data(), rings.point.size() * sizeof(float)), 0) << c.name;
       std::vector<int32_t> corners;
       for (int32_t x = 0; x < ct.num_corners(); ++x)
         if (ct.opposite(x) < x) corners.push_back(x);
