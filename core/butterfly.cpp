@@ -365,7 +365,9 @@ void ring_points_range_sse(const RingArrays r, int64_t b, int64_t e) {
     ring_points_of<decltype(k)::value>(pos, x, nb, out);
   });
 #else
-  ring_points_range(r, b, e, [](const float*, const float*, const int32_t*, float*, auto) {});
+  ring_points_range(r, b, e, [](const float* pos, const float* x, const int32_t* nb, float* out, auto k) {
+    ring_points_any(pos, x, decltype(k)::value, nb, out);
+  });
 #endif
 }
 
