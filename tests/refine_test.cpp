@@ -230,56 +230,74 @@ TEST(Refine, RefinedLevelsGetTheWalksVertexCorners) {
   EXPECT_GT(several, 0);  // suzanne's cut edges: the case the walk is kept for
 }
 
+// Every corpus mesh up to |max_faces| faces, as given and after one uniform
+// level: |f|(name, mesh, its corner table and classes with the boundary as
+// sharp flags, the canonical corner of each edge).
+struct StencilLevel {
+  Mesh mesh;
+  CornerTable ct;
+  std::vector<uint8_t> sharp;
+  VertexClass vclass;
+  std::vector<int32_t> edges;
+};
+template <typename F>
+void for_each_stencil_level(int max_faces, F&& f) {
+  for (const Case& c : cases(max_faces)) {
+    for (int levels : {0, 1}) {
+      StencilLevel l;
+      l.mesh = prepared(c.mesh);
+      if (levels > 0) l.mesh = refined(l.mesh, opts(Mode::kUniform, levels));
+      l.ct.build(l.mesh, false, 1);
+      mark_sharp_edges(l.ct, nullptr, 0, l.sharp, 1);
+      classify_vertices(l.mesh, l.ct, l.sharp, l.vclass, 2);
+      for (int32_t x = 0; x < l.ct.num_corners(); ++x)
+        if (l.ct.opposite(x) < x) l.edges.push_back(x);
+      f(c.name + " level " + std::to_string(levels), l);
+    }
+  }
+}
+
 // Uniform levels read the rings of extraordinary vertices from a table
 // instead of walking each fan once per edge: every edge's point and stencil
 // must be the walk's, bit for bit, on every mesh (open, cut and irregular
 // ones included), on the input and on a refined level.
 TEST(Refine, RingTableGivesTheWalksPoints) {
   int64_t edges = 0, ringed = 0;
-  for (const Case& c : cases(8000)) {
-    for (int levels : {0, 1}) {
-      Mesh m = prepared(c.mesh);
-      if (levels > 0) m = refined(m, opts(Mode::kUniform, levels));
-      CornerTable ct;
-      ct.build(m, false, 1);
-      std::vector<uint8_t> sharp;
-      ButterflyContext ctx;
-      ctx.mesh = &m;
-      ctx.ct = &ct;
-      ctx.sharp = &sharp;
-      mark_sharp_edges(ct, nullptr, 0, sharp, 1);
-      classify_vertices(m, ct, sharp, ctx.vclass, 2);
-      RingTable rings, narrow;
-      build_rings(m, ct, ctx.vclass, m.num_vertices(), rings, 2);
-      for (int32_t off : rings.offset) ringed += off >= 0;
-      // The rule points summed with AVX (where the processor has it) and
-      // with SSE2 alone: the same bits.
-      build_rings(m, ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide_sums=*/false);
-      ASSERT_EQ(rings.point.size(), narrow.point.size());
-      EXPECT_EQ(std::memcmp(rings.point.data(), narrow.point.data(), rings.point.size() * sizeof(float)), 0) << c.name;
-      std::vector<int32_t> corners;
-      for (int32_t x = 0; x < ct.num_corners(); ++x)
-        if (ct.opposite(x) < x) corners.push_back(x);
-      std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
-      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), walked.data());
-      std::vector<std::vector<StencilTerm>> walked_terms(corners.size());
-      for (size_t i = 0; i < corners.size(); ++i) butterfly_stencil(ctx, corners[i], walked_terms[i]);
-      ctx.rings = &rings;
-      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), read.data());
-      EXPECT_EQ(std::memcmp(walked.data(), read.data(), walked.size() * sizeof(float)), 0) << c.name;
-      std::vector<StencilTerm> terms;
-      int64_t differ = 0;
-      for (size_t i = 0; i < corners.size(); ++i) {
-        butterfly_stencil(ctx, corners[i], terms);
-        differ += terms.size() != walked_terms[i].size() ||
-                  !std::equal(terms.begin(), terms.end(), walked_terms[i].begin(), [](const StencilTerm& a, const StencilTerm& b) {
-                    return a.vertex == b.vertex && a.weight == b.weight;
-                  });
-      }
-      EXPECT_EQ(differ, 0) << c.name;
-      edges += int64_t(corners.size());
+  for_each_stencil_level(8000, [&](const std::string& name, StencilLevel& l) {
+    const Mesh& m = l.mesh;
+    const std::vector<int32_t>& corners = l.edges;
+    ButterflyContext ctx;
+    ctx.mesh = &m;
+    ctx.ct = &l.ct;
+    ctx.sharp = &l.sharp;
+    ctx.vclass = l.vclass;
+    RingTable rings, narrow;
+    build_rings(m, l.ct, ctx.vclass, m.num_vertices(), rings, 2);
+    for (int32_t off : rings.offset) ringed += off >= 0;
+    // The rule points summed with AVX (where the processor has it) and
+    // with SSE2 alone: the same bits.
+    build_rings(m, l.ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide_sums=*/false);
+    ASSERT_EQ(rings.point.size(), narrow.point.size());
+    EXPECT_EQ(std::memcmp(rings.point.data(), narrow.point.data(), rings.point.size() * sizeof(float)), 0) << name;
+    std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), walked.data());
+    std::vector<std::vector<StencilTerm>> walked_terms(corners.size());
+    for (size_t i = 0; i < corners.size(); ++i) butterfly_stencil(ctx, corners[i], walked_terms[i]);
+    ctx.rings = &rings;
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), read.data());
+    EXPECT_EQ(std::memcmp(walked.data(), read.data(), walked.size() * sizeof(float)), 0) << name;
+    std::vector<StencilTerm> terms;
+    int64_t differ = 0;
+    for (size_t i = 0; i < corners.size(); ++i) {
+      butterfly_stencil(ctx, corners[i], terms);
+      differ += terms.size() != walked_terms[i].size() ||
+                !std::equal(terms.begin(), terms.end(), walked_terms[i].begin(), [](const StencilTerm& a, const StencilTerm& b) {
+                  return a.vertex == b.vertex && a.weight == b.weight;
+                });
     }
-  }
+    EXPECT_EQ(differ, 0) << name;
+    edges += int64_t(corners.size());
+  });
   EXPECT_GT(edges, 10000);
   EXPECT_GT(ringed, 1000);  // the tables were used, not just empty
 }
@@ -289,34 +307,25 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
 // every point must be the general path's, bit for bit, with either sum.
 TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
   int64_t edges = 0;
-  for (const Case& c : cases(8000)) {
-    for (int levels : {0, 1}) {
-      Mesh m = prepared(c.mesh);
-      if (levels > 0) m = refined(m, opts(Mode::kUniform, levels));
-      CornerTable ct;
-      ct.build(m, false, 1);
-      std::vector<uint8_t> flags, none;
-      ButterflyContext ctx;
-      ctx.mesh = &m;
-      ctx.ct = &ct;
-      mark_sharp_edges(ct, nullptr, 0, flags, 1);  // the boundary, as flags
-      classify_vertices(m, ct, flags, ctx.vclass, 2);
-      std::vector<int32_t> corners;
-      for (int32_t x = 0; x < ct.num_corners(); ++x)
-        if (ct.opposite(x) < x) corners.push_back(x);
-      const size_t n = 3 * corners.size();
-      std::vector<float> general(n), plain_wide(n), plain_sse(n);
-      ctx.sharp = &flags;
-      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), general.data());
-      ctx.sharp = &none;
-      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), plain_wide.data());
-      ctx.wide_sums = false;
-      butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), plain_sse.data());
-      EXPECT_EQ(std::memcmp(general.data(), plain_wide.data(), n * sizeof(float)), 0) << c.name << " " << levels;
-      EXPECT_EQ(std::memcmp(general.data(), plain_sse.data(), n * sizeof(float)), 0) << c.name << " " << levels;
-      edges += int64_t(corners.size());
-    }
-  }
+  for_each_stencil_level(8000, [&](const std::string& name, StencilLevel& l) {
+    const std::vector<int32_t>& corners = l.edges;
+    const std::vector<uint8_t> none;
+    ButterflyContext ctx;
+    ctx.mesh = &l.mesh;
+    ctx.ct = &l.ct;
+    ctx.vclass = l.vclass;
+    const size_t n = 3 * corners.size();
+    std::vector<float> general(n), plain_wide(n), plain_sse(n);
+    ctx.sharp = &l.sharp;  // the boundary, as flags: the general path
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), general.data());
+    ctx.sharp = &none;
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), plain_wide.data());
+    ctx.wide_sums = false;
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), plain_sse.data());
+    EXPECT_EQ(std::memcmp(general.data(), plain_wide.data(), n * sizeof(float)), 0) << name;
+    EXPECT_EQ(std::memcmp(general.data(), plain_sse.data(), n * sizeof(float)), 0) << name;
+    edges += int64_t(corners.size());
+  });
   EXPECT_GT(edges, 10000);
 }
 
