@@ -337,6 +337,33 @@ double smallest_angle_sin2(const double* p, const double* q, const double* r) {
   return (cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2]) * std::min(e0, std::min(e1, e2)) / prod;
 }
 
+// Per face of a block (its corners' points gathered per coordinate: a, q, r
+// times x, y, z): the atan2 arguments of its smallest angle in double
+// arithmetic, rounded to float — y = |cross| (twice the area), x = (e_a +
+// e_b - e_min) / 2 — and y = NaN when two of its points coincide (no angles).
+// One vectorised loop (builtins, not std:: calls, as in sine_cosine).
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void smallest_angle_arguments(const float* const* __restrict pt, int n,
+                                                                             float* __restrict ys,
+                                                                             float* __restrict xs) {
+  const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
+  const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
+  const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
+  for (int i = 0; i < n; ++i) {
+    const double u0 = double(qx[i]) - ax[i], u1 = double(qy[i]) - ay[i], u2 = double(qz[i]) - az[i];
+    const double w0 = double(rx[i]) - ax[i], w1 = double(ry[i]) - ay[i], w2 = double(rz[i]) - az[i];
+    const double z0 = double(rx[i]) - qx[i], z1 = double(ry[i]) - qy[i], z2 = double(rz[i]) - qz[i];
+    const double cx = u1 * w2 - u2 * w1, cy = u2 * w0 - u0 * w2, cz = u0 * w1 - u1 * w0;
+    const double e0 = z0 * z0 + z1 * z1 + z2 * z2;
+    const double e1 = w0 * w0 + w1 * w1 + w2 * w2;
+    const double e2 = u0 * u0 + u1 * u1 + u2 * u2;
+    const double m12 = e1 < e2 ? e1 : e2, emin = e0 < m12 ? e0 : m12;
+    const bool ok = (e0 > 0) & (e1 > 0) & (e2 > 0);  // no branches: selects vectorise
+    const float y = float(__builtin_sqrt(cx * cx + cy * cy + cz * cz));
+    ys[i] = ok ? y : __builtin_nanf("");
+    xs[i] = float(0.5 * (e0 + e1 + e2 - 2.0 * emin));
+  }
+}
+
 QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // Smallest angle per face; the 1st percentile comes from a histogram of
   // 0.01-degree bins over [0, 60]. The smallest angle lies opposite the
@@ -356,36 +383,30 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   const float* p = mesh.positions.data();
   const int32_t* cv = mesh.corner_vertex.data();
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
-    // Per block of faces: the atan2 arguments (double arithmetic), the angles
-    // (a vectorised loop), then the minimum and the histogram.
-    constexpr int kBlock = 2048;
+    // Per block of faces: the points gathered, the atan2 arguments (double
+    // arithmetic) and the angles (vectorised loops), then the minimum and
+    // the histogram.
+    constexpr int kBlock = 256;
     float ys[kBlock], xs[kBlock], angles[kBlock];
+    float points[9][kBlock];
+    float* pt[9];
+    for (int j = 0; j < 9; ++j) pt[j] = points[j];
     Array<int32_t> h(kBins, 0);  // a piece holds fewer than 2^31 faces
     int32_t* bins = h.data();
     float lo = 180.0f;
     for (int32_t f0 = int32_t(b); f0 < int32_t(e); f0 += kBlock) {
-      int n = 0;
-      for (int32_t f = f0, f1 = std::min(int32_t(e), f0 + kBlock); f < f1; ++f) {
-        const float* a = p + 3 * size_t(cv[3 * size_t(f)]);
-        const float* q = p + 3 * size_t(cv[3 * size_t(f) + 1]);
-        const float* r = p + 3 * size_t(cv[3 * size_t(f) + 2]);
-        double u[3], w[3], z[3];
-        for (int i = 0; i < 3; ++i) {
-          u[i] = double(q[i]) - a[i];
-          w[i] = double(r[i]) - a[i];
-          z[i] = double(r[i]) - q[i];
+      const int n = int(std::min(int64_t(kBlock), e - f0));
+      for (int i = 0; i < n; ++i) {
+        const int32_t* t = cv + 3 * size_t(f0 + i);
+        for (int k = 0; k < 3; ++k) {
+          const float* x = p + 3 * size_t(t[k]);
+          for (int j = 0; j < 3; ++j) points[3 * k + j][i] = x[j];
         }
-        const double cx = u[1] * w[2] - u[2] * w[1], cy = u[2] * w[0] - u[0] * w[2], cz = u[0] * w[1] - u[1] * w[0];
-        const double e0 = z[0] * z[0] + z[1] * z[1] + z[2] * z[2];
-        const double e1 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-        const double e2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
-        if (!(e0 > 0 && e1 > 0 && e2 > 0)) continue;  // repeated position: no angles
-        ys[n] = float(std::sqrt(cx * cx + cy * cy + cz * cz));
-        xs[n] = float(0.5 * (e0 + e1 + e2 - 2.0 * std::min(e0, std::min(e1, e2))));
-        ++n;
       }
+      smallest_angle_arguments(pt, n, ys, xs);
       atan2_degrees(ys, xs, angles, n);
       for (int i = 0; i < n; ++i) {
+        if (std::isnan(angles[i])) continue;  // repeated position: no angles
         lo = std::min(lo, angles[i]);
         ++bins[std::min(kBins - 1, int(angles[i] * 100.0f))];
       }
