@@ -65,7 +65,11 @@ __attribute__((always_inline)) static inline float fast_atan2_pos(float y, float
 #else
 #define ITEAS_SELECTS_VECTORISE
 #endif
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+// The AVX clones are chosen by an ifunc resolver, which runs while the
+// program is being loaded: under ThreadSanitizer, before its runtime is
+// set up, where the resolver's instrumented code crashes (the sanitizer
+// build then uses the baseline loops).
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && !defined(__SANITIZE_THREAD__)
 #define ITEAS_WIDE_CLONES __attribute__((target_clones("avx", "default")))
 #else
 #define ITEAS_WIDE_CLONES
