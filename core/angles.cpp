@@ -74,8 +74,9 @@ __attribute__((always_inline)) static inline float fast_atan2_pos(float y, float
 #else
 #define ITEAS_WIDE_CLONES
 #endif
-ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void atan2_degrees(const float* __restrict y, const float* __restrict x,
-                                                  float* __restrict out, int64_t n) {
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void atan2_degrees(const float* __restrict y,
+                                                                    const float* __restrict x, float* __restrict out,
+                                                                    int64_t n) {
   for (int64_t i = 0; i < n; ++i) out[i] = fast_atan2_pos(y[i], x[i]) * float(180.0 / M_PI);
 }
 
@@ -84,7 +85,8 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void atan2_degrees(const float*
 // 1e-10 of the squared edge lengths) or a non-finite one. The edge vectors are
 // gathered per block, then the arithmetic runs as one vectorised loop (square
 // roots and divisions four at a time).
-ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void face_normals_or_nan(const Mesh& mesh, int64_t f0, int64_t f1, float* out) {
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void face_normals_or_nan(const Mesh& mesh, int64_t f0, int64_t f1,
+                                                                          float* out) {
   constexpr int kBlock = 512;
   float ux[kBlock], uy[kBlock], uz[kBlock], wx[kBlock], wy[kBlock], wz[kBlock];
   const float* p = mesh.positions.data();
@@ -123,8 +125,8 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void face_normals_or_nan(const 
 // one vectorised loop (the same operations as before, so the same bits).
 // Builtins, not std:: calls: a function with its own optimize attribute does
 // not inline the header's wrappers, and a call stops vectorisation.
-ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void sine_cosine(const float* const* __restrict n, int count, float* __restrict ys,
-                                                float* __restrict xs) {
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void sine_cosine(const float* const* __restrict n, int count,
+                                                                  float* __restrict ys, float* __restrict xs) {
   const float *__restrict ax = n[0], *__restrict ay = n[1], *__restrict az = n[2];
   const float *__restrict gx = n[3], *__restrict gy = n[4], *__restrict gz = n[5];
   for (int i = 0; i < count; ++i) {

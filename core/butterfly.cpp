@@ -382,7 +382,8 @@ __attribute__((target("avx"))) inline void ring_points_avx(const float* pos, con
   __m256d p[2 * K];  // the ring twice over: point i's j-th term is ring[i + j]
   for (int j = 0; j < K; ++j) p[j] = p[j + K] = _mm256_cvtps_pd(_mm_maskload_ps(pos + 3 * size_t(nb[j]), three));
   const __m256d c =
-      _mm256_add_pd(_mm256_setzero_pd(), _mm256_mul_pd(_mm256_set1_pd(0.75), _mm256_cvtps_pd(_mm_maskload_ps(x, three))));
+      _mm256_add_pd(_mm256_setzero_pd(),
+                    _mm256_mul_pd(_mm256_set1_pd(0.75), _mm256_cvtps_pd(_mm_maskload_ps(x, three))));
   __m256d sum[K];
   for (int i = 0; i < K; ++i) sum[i] = c;
   for (int j = 0; j < K; ++j) {
@@ -399,8 +400,9 @@ __attribute__((target("avx"))) inline void ring_points_avx(const float* pos, con
 }
 
 __attribute__((target("avx"))) void ring_points_range_avx(const RingArrays r, int64_t b, int64_t e) {
-  ring_points_range(r, b, e, [](const float* pos, const float* x, const int32_t* nb, float* out, auto k)
-                                 __attribute__((target("avx"))) { ring_points_avx<decltype(k)::value>(pos, x, nb, out); });
+  ring_points_range(r, b, e,
+                    [](const float* pos, const float* x, const int32_t* nb, float* out, auto k)
+                        __attribute__((target("avx"))) { ring_points_avx<decltype(k)::value>(pos, x, nb, out); });
 }
 #endif
 
@@ -831,7 +833,9 @@ void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64
     plain_points(view, corners, count, positions, out);
     return;
   }
-  with_view(ctx, [&](const auto& view) { points_of<std::decay_t<decltype(view)>::kGreens, false>(view, corners, count, positions, out); });
+  with_view(ctx, [&](const auto& view) {
+    points_of<std::decay_t<decltype(view)>::kGreens, false>(view, corners, count, positions, out);
+  });
 }
 
 }  // namespace iteas

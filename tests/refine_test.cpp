@@ -290,10 +290,11 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
     int64_t differ = 0;
     for (size_t i = 0; i < corners.size(); ++i) {
       butterfly_stencil(ctx, corners[i], terms);
+      const auto same = [](const StencilTerm& x, const StencilTerm& y) {
+        return x.vertex == y.vertex && x.weight == y.weight;
+      };
       differ += terms.size() != walked_terms[i].size() ||
-                !std::equal(terms.begin(), terms.end(), walked_terms[i].begin(), [](const StencilTerm& a, const StencilTerm& b) {
-                  return a.vertex == b.vertex && a.weight == b.weight;
-                });
+                !std::equal(terms.begin(), terms.end(), walked_terms[i].begin(), same);
     }
     EXPECT_EQ(differ, 0) << name;
     edges += int64_t(corners.size());
