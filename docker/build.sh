@@ -39,7 +39,11 @@ trap cleanup EXIT
 # --- a Debian base without a registry -------------------------------------------
 if ! docker image inspect "$BASE_IMAGE" >/dev/null 2>&1; then
   command -v debootstrap >/dev/null || $SUDO apt-get install -y -q debootstrap >/dev/null
-  MIRROR=$(grep -h -m1 -oE 'https?://[^ ]+/debian/?' /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null | head -1)
+  # The machine's own Debian mirror: the URIs of deb822 sources and the
+  # one-line "deb" entries, never a comment (a missing file is no error).
+  MIRROR=$( { grep -hE '^URIs:' /etc/apt/sources.list.d/*.sources 2>/dev/null | awk '{print $2}';
+              grep -hE '^deb ' /etc/apt/sources.list /etc/apt/sources.list.d/*.list 2>/dev/null | awk '{print $2}'; } \
+            | grep -m1 -E '/debian/?$' || true)
   MIRROR=${MIRROR:-http://deb.debian.org/debian}
   log "debootstrap minbase bookworm from $MIRROR"
   rm -rf "$WORK/rootfs"
