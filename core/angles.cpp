@@ -65,6 +65,9 @@ __attribute__((always_inline)) static inline float fast_atan2_pos(float y, float
 #else
 #define ITEAS_SELECTS_VECTORISE
 #endif
+// These loops are plain C++ that GCC vectorises, so GCC's target_clones
+// makes their AVX versions (butterfly.cpp's sums are written with AVX
+// intrinsics instead and pick their version with has_avx()).
 // The AVX clones are chosen by an ifunc resolver, which runs while the
 // program is being loaded: under ThreadSanitizer, before its runtime is
 // set up, where the resolver's instrumented code crashes (the sanitizer

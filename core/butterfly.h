@@ -65,7 +65,8 @@ struct ButterflyContext {
   // was built on, and never used with green pairs.
   const RingTable* rings = nullptr;
   // Regular stencils summed with AVX where the processor has it (the same
-  // bits as SSE2, fewer instructions); false: SSE2 only, for tests.
+  // bits as SSE2, fewer instructions); false: SSE2 only, for tests. The
+  // refinement hands it on to build_rings for the rings' points.
   bool wide_sums = true;
 };
 
