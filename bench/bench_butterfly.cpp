@@ -10,11 +10,19 @@
 // A second table runs ours without statistics on one thread pinned to each
 // CPU in turn, then on two: virtual CPUs need not be equally fast (a busy
 // neighbour on the host), and a one-thread run lands on either.
+// Both tables end with the round trip of a cache line between the first two
+// CPUs, measured between the repetitions of the row (median). A virtual
+// machine's two CPUs may sit close together on the host (120-190 ns here)
+// or far apart (450-530 ns) for minutes at a time; every line one thread
+// writes and the other reads then costs about three times as much. Far apart,
+// ours runs small work on one thread (core/parallel.h, threads_for), so the
+// two-thread columns of small rows then read about 1x.
 //   build/bench_butterfly [--warm] [tests/data/bunny-npm.obj] [bun_zipper.ply]
 #include <OpenMesh/Core/Mesh/TriMesh_ArrayKernelT.hh>
 #include <OpenMesh/Tools/Subdivider/Uniform/ModifiedButterFlyT.hh>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -23,6 +31,7 @@
 #include <malloc.h>
 #include <sched.h>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "core/refine.h"
@@ -83,6 +92,43 @@ static Run ours(const iteas::Mesh& input, int levels, int threads, bool statisti
   return {s, m.num_faces(), iteas::peak_heap_bytes() - before};
 }
 
+static void pin_to(int cpu) {
+  cpu_set_t one;
+  CPU_ZERO(&one);
+  CPU_SET(cpu, &one);
+  sched_setaffinity(0, sizeof(one), &one);
+}
+
+// The time a cache line takes to go from CPU a to CPU b and back, in ns (the
+// mean of 5,000 round trips of a flag, each side pinned): what a line one
+// thread has written costs the other. -1 with fewer than two CPUs.
+static double round_trip_ns(const std::vector<int>& cpus) {
+  if (cpus.size() < 2) return -1;
+  constexpr int kTrips = 5000;
+  std::atomic<int> flag{0};
+  cpu_set_t saved;
+  sched_getaffinity(0, sizeof(saved), &saved);
+  std::thread other([&flag, &cpus] {
+    pin_to(cpus[1]);
+    for (int i = 0; i < kTrips; ++i) {
+      while (flag.load(std::memory_order_acquire) != 2 * i + 1) {
+      }
+      flag.store(2 * i + 2, std::memory_order_release);
+    }
+  });
+  pin_to(cpus[0]);
+  const auto t0 = Clock::now();
+  for (int i = 0; i < kTrips; ++i) {
+    flag.store(2 * i + 1, std::memory_order_release);
+    while (flag.load(std::memory_order_acquire) != 2 * i + 2) {
+    }
+  }
+  const double s = std::chrono::duration<double>(Clock::now() - t0).count();
+  other.join();
+  sched_setaffinity(0, sizeof(saved), &saved);
+  return s / kTrips * 1e9;
+}
+
 static Run openmesh(const iteas::Mesh& input, int levels) {
   OMesh om;
   const auto b0 = Clock::now();
@@ -125,15 +171,21 @@ int main(int argc, char** argv) {
   for (int l = 1; l <= 4; ++l) cases.push_back({"bunny-npm", bunny, l});
   if (std::ifstream(zipper).good()) cases.push_back({"bun_zipper", zipper, 3});
 
+  cpu_set_t all;
+  std::vector<int> cpus;
+  if (sched_getaffinity(0, sizeof(all), &all) == 0)
+    for (int c = 0; c < CPU_SETSIZE && cpus.size() < 4; ++c)
+      if (CPU_ISSET(c, &all)) cpus.push_back(c);
   std::printf("| mesh | level | out tris | OpenMesh Mtri/s | IteAS 1T Mtri/s | IteAS 2T Mtri/s | 1T vs OpenMesh | 2T vs 1T | "
               "IteAS 1T no stats Mtri/s | no stats vs OpenMesh | IteAS 2T no stats Mtri/s | 2T vs 1T no stats | "
-              "OpenMesh B/tri | IteAS B/tri | OpenMesh build+subdivide Mtri/s | 1T no stats vs build+subdivide |\n");
-  std::printf("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+              "OpenMesh B/tri | IteAS B/tri | OpenMesh build+subdivide Mtri/s | 1T no stats vs build+subdivide | "
+              "CPU round trip ns |\n");
+  std::printf("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
   for (const Case& c : cases) {
     const iteas::Mesh input = load(c.path);
     const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
     const int reps = repetitions(out_tris);
-    std::vector<double> om_t, om_bt, t1, t2, t0, t02;
+    std::vector<double> om_t, om_bt, t1, t2, t0, t02, trip;
     Run om_last{}, one_last{};
     for (int r = 0; r < reps; ++r) {
       om_last = openmesh(input, c.level);
@@ -144,6 +196,7 @@ int main(int argc, char** argv) {
       t2.push_back(ours(input, c.level, 2).seconds);
       t0.push_back(ours(input, c.level, 1, false).seconds);
       t02.push_back(ours(input, c.level, 2, false).seconds);
+      trip.push_back(round_trip_ns(cpus));
     }
     const double om = double(om_last.triangles) / median(om_t) / 1e6;
     const double a = double(one_last.triangles) / median(t1) / 1e6;
@@ -151,44 +204,38 @@ int main(int argc, char** argv) {
     const double z = double(one_last.triangles) / median(t0) / 1e6;
     const double z2 = double(one_last.triangles) / median(t02) / 1e6;
     const double omb = double(om_last.triangles) / median(om_bt) / 1e6;
-    std::printf("| %s | %d | %lld | %.2f | %.2f | %.2f | %.1fx | %.2fx | %.2f | %.1fx | %.2f | %.2fx | %.0f | %.1f | %.2f | %.1fx |\n",
+    std::printf("| %s | %d | %lld | %.2f | %.2f | %.2f | %.1fx | %.2fx | %.2f | %.1fx | %.2f | %.2fx | %.0f | %.1f | %.2f | %.1fx "
+                "| %.0f |\n",
                 c.name.c_str(), c.level, static_cast<long long>(one_last.triangles), om, a, b, a / om, b / a, z, z / om,
                 z2, z2 / z,
                 double(om_last.peak_growth) / double(om_last.triangles),
-                double(one_last.peak_growth) / double(one_last.triangles), omb, z / omb);
+                double(one_last.peak_growth) / double(one_last.triangles), omb, z / omb, median(trip));
     std::fflush(stdout);
   }
 
   // One thread on each CPU, then two threads, without statistics.
-  cpu_set_t all;
-  if (sched_getaffinity(0, sizeof(all), &all) != 0) return 0;
-  std::vector<int> cpus;
-  for (int c = 0; c < CPU_SETSIZE && cpus.size() < 4; ++c)
-    if (CPU_ISSET(c, &all)) cpus.push_back(c);
   if (cpus.size() < 2) return 0;
   std::printf("\n| mesh | level |");
   for (int c : cpus) std::printf(" 1T on CPU %d ms |", c);
   std::printf(" 2T ms |");
   for (int c : cpus) std::printf(" 2T vs CPU %d |", c);
-  std::printf(" 2T vs mean of CPUs |\n|---|---:|");
-  for (size_t i = 0; i < 2 * cpus.size() + 2; ++i) std::printf("---:|");
+  std::printf(" 2T vs mean of CPUs | CPU round trip ns |\n|---|---:|");
+  for (size_t i = 0; i < 2 * cpus.size() + 3; ++i) std::printf("---:|");
   std::printf("\n");
   for (const Case& c : cases) {
     const iteas::Mesh input = load(c.path);
     const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
     const int reps = repetitions(out_tris);
     std::vector<std::vector<double>> one(cpus.size());
-    std::vector<double> two;
+    std::vector<double> two, trip;
     for (int r = 0; r < reps; ++r) {
       for (size_t i = 0; i < cpus.size(); ++i) {
-        cpu_set_t one_cpu;
-        CPU_ZERO(&one_cpu);
-        CPU_SET(cpus[i], &one_cpu);
-        sched_setaffinity(0, sizeof(one_cpu), &one_cpu);
+        pin_to(cpus[i]);
         one[i].push_back(ours(input, c.level, 1, false).seconds);
         sched_setaffinity(0, sizeof(all), &all);
       }
       two.push_back(ours(input, c.level, 2, false).seconds);
+      trip.push_back(round_trip_ns(cpus));
     }
     const double t2 = median(two);
     double mean = 0;
@@ -199,7 +246,7 @@ int main(int argc, char** argv) {
     }
     std::printf(" %.3f |", 1e3 * t2);
     for (auto& v : one) std::printf(" %.2fx |", median(v) / t2);
-    std::printf(" %.2fx |\n", mean / t2);
+    std::printf(" %.2fx | %.0f |\n", mean / t2, median(trip));
     std::fflush(stdout);
   }
   return 0;

@@ -86,7 +86,18 @@ class Pool {
       }
       if (!error) error = s.error;
     }
+    if (workers > 0) measure_round_trip(false);
     return true;
+  }
+
+  // A fresh measurement of the round trip below, if the last is stale.
+  void refresh_round_trip() { measure_round_trip(true); }
+
+  // Nanoseconds a cache line takes from the caller's CPU to the first
+  // worker's and back, as last measured (-1: not yet).
+  static std::atomic<int64_t>& round_trip() {
+    static std::atomic<int64_t> ns{-1};
+    return ns;
   }
 
  private:
@@ -143,6 +154,8 @@ class Pool {
   struct Slot {
     std::atomic<uint64_t> go{0};
     std::atomic<int> state{kIdle};
+    std::atomic<uint32_t> ping{0};  // odd: the caller asks; the worker answers +1
+    std::atomic<bool> linger{false};  // woken to be measured: spin 2 ms
     std::atomic<bool> sleeping{false};
     Loop* loop = nullptr;
     int index = 1;  // participant number in a loop (the caller is 0)
@@ -150,6 +163,46 @@ class Pool {
     std::mutex mutex;
     std::condition_variable wake;
   };
+
+  // At most every 100 ms, the first worker answers a flag 8 times while it
+  // spins; the round trip kept is the median of the last 7. A sleeping worker
+  // is not waited for: with |wake| it is woken to spin for 2 ms (a wake-up
+  // took 0.15-0.75 ms here while the CPUs were far apart), and a later call
+  // measures. Nothing is recorded when the pool is busy or has no worker yet,
+  // or when the answers take over 50 µs in all (then tried again in 10 ms).
+  void measure_round_trip(bool wake) {
+    using Clock = std::chrono::steady_clock;
+    std::unique_lock<std::mutex> in_use(use_, std::defer_lock);
+    if (wake && !in_use.try_lock()) return;
+    if (slots_.empty()) return;
+    Slot& s = *slots_[0];
+    const Clock::time_point start = Clock::now();
+    if (start < next_measurement_) return;
+    if (s.sleeping.load(std::memory_order_seq_cst)) {
+      if (!wake) return;
+      s.linger.store(true, std::memory_order_relaxed);
+      s.go.store(s.go.load(std::memory_order_relaxed) + 1, std::memory_order_seq_cst);
+      std::lock_guard<std::mutex> lock(s.mutex);
+      s.wake.notify_one();
+      return;
+    }
+    next_measurement_ = start + std::chrono::milliseconds(10);
+    constexpr int kTrips = 8;
+    int64_t trip[kTrips];
+    for (int k = 0; k < kTrips; ++k) {
+      ping_ += 2;
+      const Clock::time_point t0 = Clock::now();
+      s.ping.store(ping_, std::memory_order_release);
+      while (s.ping.load(std::memory_order_acquire) != ping_ + 1) {
+        cpu_relax();
+        if (Clock::now() - start > std::chrono::microseconds(50)) return;
+      }
+      trip[k] = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - t0).count();
+    }
+    std::nth_element(trip + 1, trip + 1 + kTrips / 2 - 1, trip + kTrips);
+    round_trip().store(trip[kTrips / 2], std::memory_order_relaxed);
+    next_measurement_ = start + std::chrono::milliseconds(100);
+  }
 
   bool grow(int workers) {
     while (int(slots_.size()) < workers) {
@@ -174,9 +227,13 @@ class Pool {
       // Spin about 20 µs for the next loop, then sleep. (Longer spins measured
       // slower here, on two threads and on one: a spinning thread takes from
       // the caller's serial steps.)
-      const auto until = std::chrono::steady_clock::now() + std::chrono::microseconds(20);
+      const auto until = std::chrono::steady_clock::now() + (s->linger.load(std::memory_order_relaxed) && s->linger.exchange(false, std::memory_order_relaxed)
+                                                                  ? std::chrono::microseconds(2000)
+                                                                  : std::chrono::microseconds(20));
       int spins = 0;
       while (s->go.load(std::memory_order_acquire) == seen) {
+        uint32_t p = s->ping.load(std::memory_order_acquire);
+        if (p & 1u) s->ping.compare_exchange_strong(p, p + 1, std::memory_order_acq_rel);
         cpu_relax();
         if ((++spins & 255) == 0 && std::chrono::steady_clock::now() > until) {
           std::unique_lock<std::mutex> lock(s->mutex);
@@ -196,6 +253,8 @@ class Pool {
   }
 
   std::mutex use_;
+  std::chrono::steady_clock::time_point next_measurement_;  // none before
+  uint32_t ping_ = 1;  // the last odd value asked (answered: ping_ + 1)
   Loop loop_;
   std::vector<std::unique_ptr<Slot>> slots_;
 };
@@ -209,6 +268,20 @@ Pool& pool() {
 }  // namespace
 
 bool inside_parallel_for() { return tl_in_loop; }
+
+int64_t cross_cpu_round_trip_ns() { return Pool::round_trip().load(std::memory_order_relaxed); }
+
+int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns) {
+  if (threads > 1 && faces < kSmallStepFaces && round_trip_ns > kFarRoundTripNs) return 1;
+  return threads;
+}
+
+int threads_for(int64_t faces, int threads) {
+  if (threads <= 1 || faces >= kSmallStepFaces) return threads;
+  // Small steps on one thread leave the pool idle: measure again when stale.
+  pool().refresh_round_trip();
+  return threads_for_round_trip(faces, threads, cross_cpu_round_trip_ns());
+}
 
 void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
   if (n <= 0) return;

@@ -432,6 +432,39 @@ TEST(Parallel, PiecesKnowTheyRunInsideALoop) {
   EXPECT_FALSE(iteas::inside_parallel_for());
 }
 
+// The rule: one thread only for a small step while the CPUs are far apart;
+// an unknown round trip (-1) counts as close, and one thread stays one.
+TEST(Parallel, OneThreadOnlyForSmallStepsOnFarApartCpus) {
+  using iteas::kFarRoundTripNs;
+  using iteas::kSmallStepFaces;
+  using iteas::threads_for_round_trip;
+  EXPECT_EQ(threads_for_round_trip(kSmallStepFaces - 1, 2, kFarRoundTripNs + 1), 1);
+  EXPECT_EQ(threads_for_round_trip(kSmallStepFaces, 2, kFarRoundTripNs + 1), 2);
+  EXPECT_EQ(threads_for_round_trip(100, 4, kFarRoundTripNs), 4);
+  EXPECT_EQ(threads_for_round_trip(100, 2, -1), 2);
+  EXPECT_EQ(threads_for_round_trip(100, 1, 10 * kFarRoundTripNs), 1);
+}
+
+// The round trip to the first worker is measured after parallel loops (the
+// worker spins between them) and through threads_for, which wakes a sleeping
+// worker to measure on a later call; recorded values come from answers within
+// 50 µs. Whatever it measures, refinement gives the same bits (the
+// thread-count tests compare 1 and 2 threads).
+TEST(Parallel, TheRoundTripToAWorkerGetsMeasured) {
+  if (iteas::hardware_threads() < 2) GTEST_SKIP() << "one CPU";
+  std::vector<std::atomic<int>> seen(4096);
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (iteas::cross_cpu_round_trip_ns() < 0 && std::chrono::steady_clock::now() < until) {
+    iteas::parallel_for(4096, 2, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) ++seen[i];
+    }, 1);
+    iteas::threads_for(100, 2);
+  }
+  const int64_t ns = iteas::cross_cpu_round_trip_ns();
+  EXPECT_GT(ns, 0);
+  EXPECT_LT(ns, 50000);
+}
+
 // Loops that follow a serial step long enough for the workers to fall asleep:
 // the caller may finish every piece before a worker wakes, and then withdraws
 // that worker's part instead of waiting for it; a worker that wakes late must
