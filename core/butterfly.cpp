@@ -118,14 +118,21 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   ring_points(mesh, vclass, out, threads, wide_sums);
 }
 
-void carry_rings(RingTable& rings) {
+void carry_rings(RingTable& rings, int threads) {
   // Vertex v's corner k of face f becomes corner k of child k; round v the
-  // children follow one another as their parents did.
+  // children follow one another as their parents did. On the threads that
+  // built the rings, each mostly over the entries it wrote (bunny-npm level
+  // 1 on one thread: 5.7 µs; serial after two threads built the rings, 17.5
+  // µs, half the lines coming from the other core, and the idle worker then
+  // fell asleep before the children's loop).
   const int64_t n = int64_t(rings.corner.size()) - kRingPad;
-  for (int64_t i = 0; i < n; ++i) {
-    const int32_t x = rings.corner[i];
-    if (x >= 0) rings.corner[i] = kept_child_corner(x);
-  }
+  int32_t* corner = rings.corner.data();
+  parallel_for(n, threads, [corner](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      const int32_t x = corner[i];
+      corner[i] = x >= 0 ? kept_child_corner(x) : x;
+    }
+  });
   Array<int32_t>().swap(rings.neighbour);
   Array<float>().swap(rings.point);
   rings.carried = true;

@@ -96,7 +96,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
 // k keeping corner k): keeps only the rings' corners, moved to the children,
 // for build_rings on the next level. Valid only while the vertex classes are
 // carried over too (uniform levels without creases).
-void carry_rings(RingTable& rings);
+void carry_rings(RingTable& rings, int threads);
 
 // The stencil of the new vertex on the edge opposite corner c. Rules:
 //  * sharp edge (boundary or crease): 4-point curve rule -1/16, 9/16, 9/16, -1/16

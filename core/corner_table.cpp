@@ -24,9 +24,8 @@ struct VertexCorners {
   Array<int32_t> corners;
   Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
   Array<int32_t> prevs;         // corner_vertex[prev_corner(corners[i])]
-  // Counting sort in |parts| contiguous ranges of faces, each counted and
-  // filled on its own thread: part p's corners of a vertex follow those of the
-  // parts before it, so every run is in corner order whatever the parts.
+  // Counting sort; the corners are read in order, so every run is in corner
+  // order whatever the threads.
   void build(const Array<int32_t>& corner_vertex, int32_t nv, int threads) {
     const int32_t nc = static_cast<int32_t>(corner_vertex.size()), nf = nc / 3;
     const int parts = int(std::max<int64_t>(1, std::min<int64_t>({int64_t(threads), 8, nf / kMinPartFaces})));
@@ -38,39 +37,68 @@ struct VertexCorners {
     prevs.resize(size_t(nc) + kPad);
     for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
     const int32_t* cv = corner_vertex.data();
-    auto first_face = [nf, parts](int64_t p) { return int32_t(int64_t(nf) * p / parts); };
-    // fill[p][v]: part p's count of v, then where its first corner of v goes
-    // (one part: the loops run on the calling thread).
-    std::vector<std::vector<int32_t>> fill(parts);
-    parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
-      for (int64_t p = b; p < e; ++p) {
-        fill[p].assign(size_t(nv), 0);
-        int32_t* count = fill[p].data();
-        for (int32_t c = 3 * first_face(p), end = 3 * first_face(p + 1); c < end; ++c) ++count[cv[c]];
+    if (parts == 1) {
+      // fill[v]: the count of v, then where its next corner goes.
+      std::vector<int32_t> fill(size_t(nv), 0);
+      for (int32_t c = 0; c < nc; ++c) ++fill[cv[c]];
+      int32_t total = 0;
+      for (int32_t v = 0; v < nv; ++v) {
+        offset[v] = total;
+        total += fill[v];
+        fill[v] = offset[v];
       }
-    });
-    int32_t total = 0;
-    for (int32_t v = 0; v < nv; ++v) {
-      offset[v] = total;
-      for (int p = 0; p < parts; ++p) {
-        const int32_t n = fill[p][v];
-        fill[p][v] = total;
-        total += n;
-      }
+      offset[nv] = total;
+      fill_range(cv, nc, 0, fill.data(), uint32_t(nv));
+      return;
     }
-    offset[nv] = total;
+    // Several threads: each fills the runs of its own range of vertices,
+    // reading every corner (and counting those of the vertices below its
+    // range, which tells where its runs start). Every line of the runs is
+    // then written by one thread only. With the faces split between the
+    // threads instead, a vertex's run held corners from both, and each line
+    // went back and forth between the cores (bunny-npm: 36 µs on two threads
+    // against 17 µs on one; now 31 µs, most of it the other thread's half of
+    // the input coming over). Each thread reads every corner, so more threads
+    // shorten only the writing.
     parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
       for (int64_t p = b; p < e; ++p) {
-        int32_t* at = fill[p].data();
-        for (int32_t f = 3 * first_face(p), end = 3 * first_face(p + 1); f < end; f += 3)
-          for (int k = 0; k < 3; ++k) {
-            const int32_t i = at[cv[f + k]]++;
-            corners[i] = f + k;
-            nexts[i] = cv[f + (k + 1) % 3];
-            prevs[i] = cv[f + (k + 2) % 3];
-          }
+        const int32_t v0 = int32_t(int64_t(nv) * p / parts), v1 = int32_t(int64_t(nv) * (p + 1) / parts);
+        const uint32_t span = uint32_t(v1 - v0);
+        // at[v - v0]: the count of v, then where its next corner goes; the
+        // kSpare entries after them count the corners of other vertices, by
+        // corner, so that those increments do not wait on one another.
+        std::vector<int32_t> at(size_t(span) + kSpare, 0);
+        int32_t below = 0;
+        for (int32_t c = 0; c < nc; ++c) {
+          const uint32_t u = uint32_t(cv[c] - v0);
+          ++at[u < span ? u : span + (c & (kSpare - 1))];
+          below += cv[c] < v0;
+        }
+        int32_t total = below;
+        for (uint32_t u = 0; u < span; ++u) {
+          offset[v0 + u] = total;
+          total += at[u];
+          at[u] = offset[v0 + u];
+        }
+        if (v1 == nv) offset[nv] = total;
+        fill_range(cv, nc, v0, at.data(), span);
       }
     });
+  }
+  static constexpr uint32_t kSpare = 8;
+  // Writes the entries of the corners of vertices [v0, v0 + span) at at[v - v0]
+  // (advanced), reading the corners in order.
+  void fill_range(const int32_t* cv, int32_t nc, int32_t v0, int32_t* at, uint32_t span) {
+    int32_t *co = corners.data(), *ne = nexts.data(), *pr = prevs.data();
+    for (int32_t f = 0; f < nc; f += 3)
+      for (int k = 0; k < 3; ++k) {
+        const uint32_t u = uint32_t(cv[f + k] - v0);
+        if (u >= span) continue;
+        const int32_t i = at[u]++;
+        co[i] = f + k;
+        ne[i] = cv[f + (k + 1) % 3];
+        pr[i] = cv[f + (k + 2) % 3];
+      }
   }
   // Faces below this many per part are counted and filled on one thread.
   static constexpr int32_t kMinPartFaces = 1024;

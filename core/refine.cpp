@@ -357,7 +357,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   // level will want them (the larger next level sets the peak then).
   s.bctx.rings = nullptr;
   note_peak(s, m, vbytes(evert) + vbytes(ewedge));
-  if (derive_classes && more_levels && !s.rings.offset.empty()) carry_rings(s.rings);
+  if (derive_classes && more_levels && !s.rings.offset.empty()) carry_rings(s.rings, s.threads);
   else s.rings = RingTable();
 
   // Topology pass 2: children. Then the new vertices' fan corners, while the

@@ -370,7 +370,7 @@ TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
     CornerTable next_ct;
     next_ct.build(next_copy, false, 1);
     RingTable carried = from_fans, next_walk;
-    carry_rings(carried);
+    carry_rings(carried, 2);  // two threads: as the refinement carries them
     rings_of(next, next_ct, m.num_vertices(), carried);
     rings_of(next, next_ct, m.num_vertices(), next_walk);
     EXPECT_TRUE(same(carried, next_walk)) << c.name;
