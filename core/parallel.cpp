@@ -93,6 +93,14 @@ class Pool {
   // A fresh measurement of the round trip below, if the last is stale.
   void refresh_round_trip() { measure_round_trip(true); }
 
+  // True when the first worker exists and is not asleep (it spins for about
+  // 20 µs after each loop, and for 2 ms once woken to be measured).
+  bool worker_awake() {
+    std::unique_lock<std::mutex> in_use(use_, std::try_to_lock);
+    if (!in_use.owns_lock() || slots_.empty()) return false;
+    return !slots_[0]->sleeping.load(std::memory_order_seq_cst);
+  }
+
   // Nanoseconds a cache line takes from the caller's CPU to the first
   // worker's and back, as last measured (-1: not yet).
   static std::atomic<int64_t>& round_trip() {
@@ -271,16 +279,20 @@ bool inside_parallel_for() { return tl_in_loop; }
 
 int64_t cross_cpu_round_trip_ns() { return Pool::round_trip().load(std::memory_order_relaxed); }
 
-int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns) {
+int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns, bool worker_awake) {
   if (threads > 1 && faces < kSmallStepFaces && round_trip_ns > kFarRoundTripNs) return 1;
+  if (threads > 1 && faces < kTinyStepFaces && !worker_awake) return 1;
   return threads;
 }
 
 int threads_for(int64_t faces, int threads) {
   if (threads <= 1 || faces >= kSmallStepFaces) return threads;
+  // Asked before the measurement below, which may wake the worker (it then
+  // takes a while to run: the next call finds it awake).
+  const bool awake = pool().worker_awake();
   // Small steps on one thread leave the pool idle: measure again when stale.
   pool().refresh_round_trip();
-  return threads_for_round_trip(faces, threads, cross_cpu_round_trip_ns());
+  return threads_for_round_trip(faces, threads, cross_cpu_round_trip_ns(), awake);
 }
 
 void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {

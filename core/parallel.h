@@ -37,10 +37,17 @@ int64_t cross_cpu_round_trip_ns();
 // depends on it (the loops are deterministic). Measures the round trip again
 // when the last measurement is stale.
 int threads_for(int64_t faces, int threads);
+// Also one for a tiny job while the worker sleeps (or does not exist yet):
+// waking it took 22-38 µs here after a short sleep and 0.6 ms or more once
+// its virtual CPU had been idle for 2 ms, while a job whose last level
+// starts from under 8,192 faces takes 0.2-0.4 ms on one thread (bunny-npm
+// uniform level 1, whose loops the worker then joined late or never: 0.79-1.0x
+// one thread's speed in the benchmark, where every run finds it asleep).
 // The rule itself, for a given round trip (-1: unknown, taken as close).
 constexpr int64_t kSmallStepFaces = 16384;
+constexpr int64_t kTinyStepFaces = 8192;
 constexpr int64_t kFarRoundTripNs = 300;
-int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns);
+int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns, bool worker_awake = true);
 
 // True while the calling thread runs pieces of a parallel_for of more than one
 // thread (a loop started there finds the pool busy and starts threads of its own).

@@ -1085,7 +1085,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   // never depend on it.
   int64_t last_level_faces = m.num_faces();
   for (int l = 1; l < o.levels && last_level_faces < kSmallStepFaces; ++l) last_level_faces *= 4;
-  s.threads = threads_for(last_level_faces, resolve_threads(o.threads));
+  s.threads = hooks.choose_threads ? threads_for(last_level_faces, resolve_threads(o.threads))
+                                   : resolve_threads(o.threads);
   const PagePopulateThreads populate_threads(s.threads);
   // Wedges without channels carry nothing: drop them (every vertex its own wedge).
   if (m.channels.empty()) { Array<int32_t>().swap(m.corner_wedge); std::vector<int32_t>().swap(m.wedge_vertex); }

@@ -73,6 +73,9 @@ struct RefineHooks {
   // refinement (θ after each level, triangle angles before and after), to time
   // the subdivision alone. Adaptive modes need θ and compute it regardless.
   bool statistics = true;
+  // Testing: false runs on exactly the threads the options give, where the
+  // refinement would otherwise take one for a small job (threads_for).
+  bool choose_threads = true;
 };
 
 enum class RefineResult { kOk, kCancelled };

@@ -474,8 +474,9 @@ TEST(Parallel, PiecesKnowTheyRunInsideALoop) {
   EXPECT_FALSE(iteas::inside_parallel_for());
 }
 
-// The rule: one thread only for a small step while the CPUs are far apart;
-// an unknown round trip (-1) counts as close, and one thread stays one.
+// The rule: one thread only for a small step while the CPUs are far apart, or
+// for a tiny one while the worker sleeps; an unknown round trip (-1) counts
+// as close, and one thread stays one.
 TEST(Parallel, OneThreadOnlyForSmallStepsOnFarApartCpus) {
   using iteas::kFarRoundTripNs;
   using iteas::kSmallStepFaces;
@@ -485,6 +486,11 @@ TEST(Parallel, OneThreadOnlyForSmallStepsOnFarApartCpus) {
   EXPECT_EQ(threads_for_round_trip(100, 4, kFarRoundTripNs), 4);
   EXPECT_EQ(threads_for_round_trip(100, 2, -1), 2);
   EXPECT_EQ(threads_for_round_trip(100, 1, 10 * kFarRoundTripNs), 1);
+  // A tiny job does not wait for a sleeping worker; a larger one does.
+  using iteas::kTinyStepFaces;
+  EXPECT_EQ(threads_for_round_trip(kTinyStepFaces - 1, 2, 100, false), 1);
+  EXPECT_EQ(threads_for_round_trip(kTinyStepFaces - 1, 2, 100, true), 2);
+  EXPECT_EQ(threads_for_round_trip(kTinyStepFaces, 2, 100, false), 2);
 }
 
 // The round trip to the first worker is measured after parallel loops (the

@@ -32,6 +32,7 @@ Mesh refined(const Mesh& in, const RefineOptions& o, RefineStats* st = nullptr, 
   RefineStats local;
   RefineHooks h;
   h.force_adaptive_path = force_adaptive;
+  h.choose_threads = false;  // two threads mean two, whatever the machine's state
   refine_mesh(m, o, h, st ? st : &local);
   m.materialize();
   return m;
