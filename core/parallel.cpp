@@ -94,11 +94,24 @@ class Pool {
   void refresh_round_trip() { measure_round_trip(true); }
 
   // True when the first worker exists and is not asleep (it spins for about
-  // 60 µs after each loop, and for 2 ms once woken to be measured).
+  // 60 µs after each loop, and for 2 ms once roused).
   bool worker_awake() {
     std::unique_lock<std::mutex> in_use(use_, std::try_to_lock);
     if (!in_use.owns_lock() || slots_.empty()) return false;
     return !slots_[0]->sleeping.load(std::memory_order_seq_cst);
+  }
+
+  // Starts the first worker, or wakes it to spin for 2 ms, so that a call
+  // soon after this one finds it awake (a job that did not wait for it
+  // leaves it asleep otherwise, and so would every tiny job after it).
+  void rouse() {
+    std::unique_lock<std::mutex> in_use(use_, std::try_to_lock);
+    if (!in_use.owns_lock()) return;
+    if (slots_.empty()) {
+      grow(1);
+      return;
+    }
+    if (slots_[0]->sleeping.load(std::memory_order_seq_cst)) linger(*slots_[0]);
   }
 
   // Nanoseconds a cache line takes from the caller's CPU to the first
@@ -187,11 +200,7 @@ class Pool {
     const Clock::time_point start = Clock::now();
     if (start < next_measurement_) return;
     if (s.sleeping.load(std::memory_order_seq_cst)) {
-      if (!wake) return;
-      s.linger.store(true, std::memory_order_relaxed);
-      s.go.store(s.go.load(std::memory_order_relaxed) + 1, std::memory_order_seq_cst);
-      std::lock_guard<std::mutex> lock(s.mutex);
-      s.wake.notify_one();
+      if (wake) linger(s);
       return;
     }
     next_measurement_ = start + std::chrono::milliseconds(10);
@@ -210,6 +219,15 @@ class Pool {
     std::nth_element(trip + 1, trip + 1 + kTrips / 2 - 1, trip + kTrips);
     round_trip().store(trip[kTrips / 2], std::memory_order_relaxed);
     next_measurement_ = start + std::chrono::milliseconds(100);
+  }
+
+  // Wakes a sleeping worker to spin for 2 ms (the caller holds use_: the
+  // bumped generation then withdraws no loop).
+  static void linger(Slot& s) {
+    s.linger.store(true, std::memory_order_relaxed);
+    s.go.store(s.go.load(std::memory_order_relaxed) + 1, std::memory_order_seq_cst);
+    std::lock_guard<std::mutex> lock(s.mutex);
+    s.wake.notify_one();
   }
 
   bool grow(int workers) {
@@ -293,9 +311,10 @@ int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns, bo
 
 int threads_for(int64_t faces, int threads) {
   if (threads <= 1 || faces >= kSmallStepFaces) return threads;
-  // Asked before the measurement below, which may wake the worker (it then
-  // takes a while to run: the next call finds it awake).
+  // Asked before the worker is roused (it then takes a while to run: a call
+  // soon after this one finds it awake).
   const bool awake = pool().worker_awake();
+  if (!awake) pool().rouse();
   // Small steps on one thread leave the pool idle: measure again when stale.
   pool().refresh_round_trip();
   return threads_for_round_trip(faces, threads, cross_cpu_round_trip_ns(), awake);

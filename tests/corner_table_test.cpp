@@ -8,6 +8,7 @@
 #include <cstring>
 #include <mutex>
 #include <stdexcept>
+#include <thread>
 
 #include "core/angles.h"
 #include "core/corner_table.h"
@@ -491,6 +492,23 @@ TEST(Parallel, OneThreadOnlyForSmallStepsOnFarApartCpus) {
   EXPECT_EQ(threads_for_round_trip(kTinyStepFaces - 1, 2, 100, false), 1);
   EXPECT_EQ(threads_for_round_trip(kTinyStepFaces - 1, 2, 100, true), 2);
   EXPECT_EQ(threads_for_round_trip(kTinyStepFaces, 2, 100, false), 2);
+}
+
+// A tiny job runs on one thread while the worker sleeps or has not been
+// started, and rouses it, so that the jobs soon after it get two threads
+// (without that, a process of tiny jobs never started its worker). Run
+// alone, this test starts the pool itself.
+TEST(Parallel, TinyJobsRouseTheWorkerForTheNextOnes) {
+  if (iteas::hardware_threads() < 2) GTEST_SKIP() << "one CPU";
+  int got = 1;
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (std::chrono::steady_clock::now() < until) {
+    got = iteas::threads_for(100, 2);
+    if (got == 2) break;
+    if (iteas::cross_cpu_round_trip_ns() > iteas::kFarRoundTripNs) GTEST_SKIP() << "CPUs far apart: one thread";
+    std::this_thread::sleep_for(std::chrono::microseconds(50));
+  }
+  EXPECT_EQ(got, 2);
 }
 
 // The round trip to the first worker is measured after parallel loops (the
