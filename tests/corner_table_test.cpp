@@ -101,7 +101,7 @@ TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
       ++checked;
     }
   }
-  EXPECT_GT(checked, 10);
+  EXPECT_GE(checked, test::corpus_dir().empty() ? 2 : 10);  // tests/data alone: bunny-npm and knot
 }
 
 // CornerTable::update against a build from scratch, over three rounds of
