@@ -24,11 +24,15 @@ struct VertexCorners {
   Array<int32_t> corners;
   Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
   Array<int32_t> prevs;         // corner_vertex[prev_corner(corners[i])]
-  // Counting sort; the corners are read in order, so every run is in corner
-  // order whatever the threads.
-  void build(const Array<int32_t>& corner_vertex, int32_t nv, int threads) {
-    const int32_t nc = static_cast<int32_t>(corner_vertex.size()), nf = nc / 3;
-    const int parts = int(std::max<int64_t>(1, std::min<int64_t>({int64_t(threads), 8, nf / kMinPartFaces})));
+  // Counting sort, on the calling thread whatever the threads. Split between
+  // two threads it was slower than on one (bunny-npm: 17 µs on one thread):
+  // by faces, a vertex's run held corners from both threads and its lines
+  // went back and forth between the cores (36 µs); by ranges of vertices,
+  // each thread reading every corner, the input written by the caller had to
+  // come over to the other core (31 µs; bun_zipper 0.71 against 0.54 ms).
+  // The idle worker spins through the fill and joins the matching.
+  void build(const Array<int32_t>& corner_vertex, int32_t nv) {
+    const int32_t nc = static_cast<int32_t>(corner_vertex.size());
     offset.resize(size_t(nv) + 1);
     // kPad entries after the last run, matching no vertex: a run of up to 8 is
     // then compared 8 at a time without reading past the arrays.
@@ -37,71 +41,25 @@ struct VertexCorners {
     prevs.resize(size_t(nc) + kPad);
     for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
     const int32_t* cv = corner_vertex.data();
-    if (parts == 1) {
-      // fill[v]: the count of v, then where its next corner goes.
-      std::vector<int32_t> fill(size_t(nv), 0);
-      for (int32_t c = 0; c < nc; ++c) ++fill[cv[c]];
-      int32_t total = 0;
-      for (int32_t v = 0; v < nv; ++v) {
-        offset[v] = total;
-        total += fill[v];
-        fill[v] = offset[v];
-      }
-      offset[nv] = total;
-      fill_range(cv, nc, 0, fill.data(), uint32_t(nv));
-      return;
+    // at[v]: the count of v, then where its next corner goes.
+    std::vector<int32_t> at(size_t(nv), 0);
+    for (int32_t c = 0; c < nc; ++c) ++at[cv[c]];
+    int32_t total = 0;
+    for (int32_t v = 0; v < nv; ++v) {
+      offset[v] = total;
+      total += at[v];
+      at[v] = offset[v];
     }
-    // Several threads: each fills the runs of its own range of vertices,
-    // reading every corner (and counting those of the vertices below its
-    // range, which tells where its runs start). Every line of the runs is
-    // then written by one thread only. With the faces split between the
-    // threads instead, a vertex's run held corners from both, and each line
-    // went back and forth between the cores (bunny-npm: 36 µs on two threads
-    // against 17 µs on one; now 31 µs, most of it the other thread's half of
-    // the input coming over). Each thread reads every corner, so more threads
-    // shorten only the writing.
-    parallel_for_chunks(parts, parts, [&](int64_t b, int64_t e) {
-      for (int64_t p = b; p < e; ++p) {
-        const int32_t v0 = int32_t(int64_t(nv) * p / parts), v1 = int32_t(int64_t(nv) * (p + 1) / parts);
-        const uint32_t span = uint32_t(v1 - v0);
-        // at[v - v0]: the count of v, then where its next corner goes; the
-        // kSpare entries after them count the corners of other vertices, by
-        // corner, so that those increments do not wait on one another.
-        std::vector<int32_t> at(size_t(span) + kSpare, 0);
-        int32_t below = 0;
-        for (int32_t c = 0; c < nc; ++c) {
-          const uint32_t u = uint32_t(cv[c] - v0);
-          ++at[u < span ? u : span + (c & (kSpare - 1))];
-          below += cv[c] < v0;
-        }
-        int32_t total = below;
-        for (uint32_t u = 0; u < span; ++u) {
-          offset[v0 + u] = total;
-          total += at[u];
-          at[u] = offset[v0 + u];
-        }
-        if (v1 == nv) offset[nv] = total;
-        fill_range(cv, nc, v0, at.data(), span);
-      }
-    });
-  }
-  static constexpr uint32_t kSpare = 8;
-  // Writes the entries of the corners of vertices [v0, v0 + span) at at[v - v0]
-  // (advanced), reading the corners in order.
-  void fill_range(const int32_t* cv, int32_t nc, int32_t v0, int32_t* at, uint32_t span) {
+    offset[nv] = total;
     int32_t *co = corners.data(), *ne = nexts.data(), *pr = prevs.data();
     for (int32_t f = 0; f < nc; f += 3)
       for (int k = 0; k < 3; ++k) {
-        const uint32_t u = uint32_t(cv[f + k] - v0);
-        if (u >= span) continue;
-        const int32_t i = at[u]++;
+        const int32_t i = at[cv[f + k]]++;
         co[i] = f + k;
         ne[i] = cv[f + (k + 1) % 3];
         pr[i] = cv[f + (k + 2) % 3];
       }
   }
-  // Faces below this many per part are counted and filled on one thread.
-  static constexpr int32_t kMinPartFaces = 1024;
   // The runs of some vertices only: run r holds the corners of the vertex v
   // with id[v] == r, in corner order as build() has them; |at| lists every
   // corner of those vertices in corner order.
@@ -287,7 +245,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
   VertexCorners vc;
-  vc.build(cv, mesh.num_vertices(), threads);
+  vc.build(cv, mesh.num_vertices());
   opposite_.resize(nc);  // every entry is written below
 
   // Per corner c: its edge runs a = v(next c) -> b = v(prev c); its corner at

@@ -62,11 +62,12 @@ TEST(CornerTable, InvariantsOnEveryMesh) {
   EXPECT_GT(checked, 20);
 }
 
-// The table is the same whatever the threads: on two or three, each thread
-// fills the corner runs of its own range of vertices (reading every corner),
-// and the runs must still list each vertex's corners in corner order, which
-// decides the vertex's corner, its fan order and which of several matches is
-// kept. Every mesh of 2,048 faces or more takes that path.
+// The table is the same whatever the threads: the edge matching splits the
+// vertices between the threads, and each vertex's corner, fan, fan order and
+// the match kept among several must not depend on it (nor would a fill of
+// the corner runs split between threads, tried and measured slower: the runs
+// must list each vertex's corners in corner order). Meshes of 2,048 faces or
+// more (over 1,024 vertices: two threads' worth of the matching's grain).
 TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
   int checked = 0;
   for (const std::string& path : test::valid_mesh_files()) {
