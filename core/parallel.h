@@ -26,7 +26,8 @@ inline int resolve_threads(int threads) { return threads <= 0 ? hardware_threads
 int64_t cross_cpu_round_trip_ns();
 
 // The threads worth using for work whose largest step is over |faces| faces:
-// |threads|, except one while the CPUs are far apart and the work is small.
+// |threads|, except one while the CPUs are far apart and the work is small,
+// or while the worker sleeps and the work is tiny (see below).
 // A virtual machine's two CPUs can sit close together on the host or far
 // apart, for minutes at a time (measured here: a round trip of 120-190 ns or
 // of 450-530 ns); far apart, every line one thread has written costs the
