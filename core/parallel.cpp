@@ -86,32 +86,31 @@ class Pool {
       }
       if (!error) error = s.error;
     }
-    if (workers > 0) measure_round_trip(false);
+    if (workers > 0) measure_round_trip();
     return true;
   }
 
-  // A fresh measurement of the round trip below, if the last is stale.
-  void refresh_round_trip() { measure_round_trip(true); }
-
-  // True when the first worker exists and is not asleep (it spins for about
-  // 60 µs after each loop, and for 2 ms once roused).
-  bool worker_awake() {
+  // For work the caller may run alone: true when the first worker is awake
+  // (it spins for about 60 µs after each loop, and for 2 ms once roused),
+  // and then the round trip below is measured again if stale. Otherwise the
+  // worker is started, or woken to spin for 2 ms, so that a call soon after
+  // this one finds it awake (a job that did not wait for it leaves it asleep
+  // otherwise, and so would every tiny job after it); false also while the
+  // pool is busy.
+  bool rouse() {
     std::unique_lock<std::mutex> in_use(use_, std::try_to_lock);
-    if (!in_use.owns_lock() || slots_.empty()) return false;
-    return !slots_[0]->sleeping.load(std::memory_order_seq_cst);
-  }
-
-  // Starts the first worker, or wakes it to spin for 2 ms, so that a call
-  // soon after this one finds it awake (a job that did not wait for it
-  // leaves it asleep otherwise, and so would every tiny job after it).
-  void rouse() {
-    std::unique_lock<std::mutex> in_use(use_, std::try_to_lock);
-    if (!in_use.owns_lock()) return;
+    if (!in_use.owns_lock()) return false;
     if (slots_.empty()) {
       grow(1);
-      return;
+      return false;
     }
-    if (slots_[0]->sleeping.load(std::memory_order_seq_cst)) linger(*slots_[0]);
+    Slot& s = *slots_[0];
+    if (s.sleeping.load(std::memory_order_seq_cst)) {
+      linger(s);
+      return false;
+    }
+    measure_round_trip();
+    return true;
   }
 
   // Nanoseconds a cache line takes from the caller's CPU to the first
@@ -186,23 +185,18 @@ class Pool {
   };
 
   // At most every 100 ms, the first worker answers a flag 8 times while it
-  // spins; the round trip kept is the median of the last 7. A sleeping worker
-  // is not waited for: with |wake| it is woken to spin for 2 ms (a wake-up
-  // took 0.15-0.75 ms here while the CPUs were far apart), and a later call
-  // measures. Nothing is recorded when the pool is busy or has no worker yet,
-  // or when the answers take over 50 µs in all (then tried again in 10 ms).
-  void measure_round_trip(bool wake) {
+  // spins; the round trip kept is the median of the last 7. The caller holds
+  // use_. A sleeping worker is not waited for (a wake-up took 0.15-0.75 ms
+  // while the CPUs were far apart; rouse() wakes it, and a later call
+  // measures). Nothing is recorded when there is no worker yet, or when the
+  // answers take over 50 µs in all (then tried again in 10 ms).
+  void measure_round_trip() {
     using Clock = std::chrono::steady_clock;
-    std::unique_lock<std::mutex> in_use(use_, std::defer_lock);
-    if (wake && !in_use.try_lock()) return;
     if (slots_.empty()) return;
     Slot& s = *slots_[0];
     const Clock::time_point start = Clock::now();
     if (start < next_measurement_) return;
-    if (s.sleeping.load(std::memory_order_seq_cst)) {
-      if (wake) linger(s);
-      return;
-    }
+    if (s.sleeping.load(std::memory_order_seq_cst)) return;
     next_measurement_ = start + std::chrono::milliseconds(10);
     constexpr int kTrips = 8;
     int64_t trip[kTrips];
@@ -311,12 +305,9 @@ int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns, bo
 
 int threads_for(int64_t faces, int threads) {
   if (threads <= 1 || faces >= kSmallStepFaces) return threads;
-  // Asked before the worker is roused (it then takes a while to run: a call
-  // soon after this one finds it awake).
-  const bool awake = pool().worker_awake();
-  if (!awake) pool().rouse();
-  // Small steps on one thread leave the pool idle: measure again when stale.
-  pool().refresh_round_trip();
+  // Small steps on one thread leave the pool idle: rouse() wakes the worker
+  // for the calls after this one, or measures again when stale.
+  const bool awake = pool().rouse();
   return threads_for_round_trip(faces, threads, cross_cpu_round_trip_ns(), awake);
 }
 

@@ -69,40 +69,34 @@ TEST(CornerTable, InvariantsOnEveryMesh) {
 // must list each vertex's corners in corner order). Meshes of 2,048 faces or
 // more (over 1,024 vertices: two threads' worth of the matching's grain).
 TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
-  int checked = 0;
-  for (const std::string& path : test::valid_mesh_files()) {
-    Document doc;
-    if (!test::load(path, &doc).ok()) continue;
-    for (MeshSlot& slot : doc.meshes) {
-      if (slot.mesh.num_faces() < 2048) continue;
-      SCOPED_TRACE(path);
-      for (bool split : {true, false}) {
-        Mesh one = slot.mesh;
-        CornerTable t1;
-        const TopologyReport r1 = t1.build(one, split, 1, true);
-        for (int threads : {2, 3}) {
-          Mesh m = slot.mesh;
-          CornerTable t;
-          const TopologyReport r = t.build(m, split, threads, true);
-          ASSERT_TRUE(m.corner_vertex == one.corner_vertex) << threads;
-          EXPECT_EQ(r.boundary_edges, r1.boundary_edges);
-          EXPECT_EQ(r.non_manifold_edges, r1.non_manifold_edges);
-          EXPECT_EQ(r.split_vertices, r1.split_vertices);
-          ASSERT_TRUE(t.opposites() == t1.opposites()) << threads;
-          ASSERT_TRUE(t.fans() == t1.fans()) << threads;
-          for (int32_t v = 0; v < m.num_vertices(); ++v) {
-            ASSERT_EQ(t.vertex_corner(v), t1.vertex_corner(v)) << "vertex " << v << ", " << threads << " threads";
-            const int32_t* a = t.fan_order(v);
-            const int32_t* b = t1.fan_order(v);
-            ASSERT_EQ(a == nullptr, b == nullptr) << "vertex " << v;
-            for (int32_t j = 0; a && j < std::abs(t.fans()[v]); ++j) ASSERT_EQ(a[j], b[j]) << "vertex " << v;
-          }
+  const std::vector<test::NamedMesh> meshes = test::valid_meshes(INT64_MAX, 2048);
+  for (const test::NamedMesh& c : meshes) {
+    SCOPED_TRACE(c.name);
+    for (bool split : {true, false}) {
+      Mesh one = c.mesh;
+      CornerTable t1;
+      const TopologyReport r1 = t1.build(one, split, 1, true);
+      for (int threads : {2, 3}) {
+        Mesh m = c.mesh;
+        CornerTable t;
+        const TopologyReport r = t.build(m, split, threads, true);
+        ASSERT_TRUE(m.corner_vertex == one.corner_vertex) << threads;
+        EXPECT_EQ(r.boundary_edges, r1.boundary_edges);
+        EXPECT_EQ(r.non_manifold_edges, r1.non_manifold_edges);
+        EXPECT_EQ(r.split_vertices, r1.split_vertices);
+        ASSERT_TRUE(t.opposites() == t1.opposites()) << threads;
+        ASSERT_TRUE(t.fans() == t1.fans()) << threads;
+        for (int32_t v = 0; v < m.num_vertices(); ++v) {
+          ASSERT_EQ(t.vertex_corner(v), t1.vertex_corner(v)) << "vertex " << v << ", " << threads << " threads";
+          const int32_t* a = t.fan_order(v);
+          const int32_t* b = t1.fan_order(v);
+          ASSERT_EQ(a == nullptr, b == nullptr) << "vertex " << v;
+          for (int32_t j = 0; a && j < std::abs(t.fans()[v]); ++j) ASSERT_EQ(a[j], b[j]) << "vertex " << v;
         }
       }
-      ++checked;
     }
   }
-  EXPECT_GE(checked, test::corpus_dir().empty() ? 2 : 10);  // tests/data alone: bunny-npm and knot
+  EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 2u : 10u);  // tests/data alone: bunny-npm and knot
 }
 
 // CornerTable::update against a build from scratch, over three rounds of
