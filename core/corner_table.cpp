@@ -4,6 +4,13 @@
 #include <atomic>
 #include <unordered_map>
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define ITEAS_AVX2_MATCH 1
+#else
+#define ITEAS_AVX2_MATCH 0
+#endif
+
 #include "core/parallel.h"
 
 namespace iteas {
@@ -155,6 +162,94 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   return true;
 }
 
+#if ITEAS_AVX2_MATCH
+// Rotations within a run of n (3..8) entries: lane i of kRot.r[n][k] is
+// (i + k) mod n (lanes from n on: themselves, never read).
+struct Rotations {
+  alignas(32) int32_t r[9][8][8];
+  constexpr Rotations() : r() {
+    for (int n = 0; n < 9; ++n)
+      for (int k = 0; k < 8; ++k)
+        for (int i = 0; i < 8; ++i) r[n][k][i] = (n >= 3 && i < n) ? (i + k) % n : i;
+  }
+};
+constexpr Rotations kRot;
+
+// match_manifold for a run of n (3..8) entries in registers of eight lanes:
+// every entry's next vertex against the previous vertex of the entry k
+// places further round the run, for k = 0..n-1 (n compares for the whole
+// run, where match_manifold makes two per entry behind a dispatch on n,
+// which varies from vertex to vertex). Accepts exactly the runs match_manifold
+// accepts (every entry matched once each way) and writes the same
+// opposites, fan order and fan size.
+__attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorners& vc, int32_t rb, int n,
+                                                                  int32_t* opposite, int32_t* order, int32_t& first,
+                                                                  int32_t& faces) {
+  const int32_t* corners = vc.corners.data() + rb;
+  const __m256i P = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.prevs.data() + rb));
+  const __m256i X = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.nexts.data() + rb));
+  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(corners));
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256i valid = _mm256_cmpgt_epi32(_mm256_set1_epi32(n), lane);
+  __m256i hits = _mm256_setzero_si256(), hits_j = hits, offset = hits, right = hits;
+  for (int k = 0; k < n; ++k) {
+    const __m256i rot = _mm256_load_si256(reinterpret_cast<const __m256i*>(kRot.r[n][k]));
+    const __m256i back = _mm256_load_si256(reinterpret_cast<const __m256i*>(kRot.r[n][k == 0 ? 0 : n - k]));
+    // eq lane i: entry (i + k) mod n's previous vertex is entry i's next.
+    const __m256i eq = _mm256_and_si256(valid, _mm256_cmpeq_epi32(X, _mm256_permutevar8x32_epi32(P, rot)));
+    hits = _mm256_add_epi32(hits, eq);
+    offset = _mm256_add_epi32(offset, _mm256_and_si256(eq, _mm256_set1_epi32(k)));
+    // Seen from entry j = (i + k) mod n: matched by entry (j - k) mod n.
+    const __m256i eq_j = _mm256_permutevar8x32_epi32(eq, back);
+    hits_j = _mm256_add_epi32(hits_j, eq_j);
+    right = _mm256_add_epi32(right, _mm256_and_si256(eq_j, back));
+  }
+  const __m256i minus_one = _mm256_set1_epi32(-1);
+  const __m256i once = _mm256_and_si256(_mm256_cmpeq_epi32(hits, minus_one), _mm256_cmpeq_epi32(hits_j, minus_one));
+  const unsigned keep = (1u << n) - 1;
+  if ((unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(once))) & keep) != keep) return false;
+  // m = (i + offset) mod n; next and previous corners without division by 3
+  // in the loop (c mod 3 from the high half of c * 0xAAAAAAAB).
+  __m256i m = _mm256_add_epi32(lane, offset);
+  m = _mm256_sub_epi32(m, _mm256_and_si256(_mm256_cmpgt_epi32(m, _mm256_set1_epi32(n - 1)), _mm256_set1_epi32(n)));
+  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
+  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(C, magic), 33);
+  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(C, 32), magic), 33);
+  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
+  const __m256i r3 = _mm256_sub_epi32(C, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
+  const __m256i three = _mm256_set1_epi32(3), one = _mm256_set1_epi32(1);
+  const __m256i next = _mm256_add_epi32(_mm256_add_epi32(C, one),
+                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_set1_epi32(2)),
+                                                         _mm256_set1_epi32(-3)));
+  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
+                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()), three));
+  alignas(32) int32_t before[8], after[8], r[8];
+  _mm256_store_si256(reinterpret_cast<__m256i*>(before), prev);
+  _mm256_store_si256(reinterpret_cast<__m256i*>(after), _mm256_permutevar8x32_epi32(next, m));
+  _mm256_store_si256(reinterpret_cast<__m256i*>(r), right);
+  for (int i = 0; i < n; ++i) opposite[before[i]] = after[i];
+  first = r[0];
+  int32_t x = first, count = 0;
+  bool back = false;
+  for (int step = 0; step < n; ++step) {
+    if (order) order[rb + step] = corners[x];
+    x = r[x];
+    count += !back;
+    back |= x == first;
+  }
+  faces = count;
+  return true;
+}
+
+bool has_avx2() {
+  static const bool yes = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") != 0;
+  }();
+  return yes;
+}
+#endif
+
 // Runs longer than this are matched in a buffer from the heap.
 struct RunScratch {
   static constexpr int32_t kLocal = 64;
@@ -173,19 +268,27 @@ struct Cuts {
   int64_t corners = 0;
   bool not_boundary = false;
 };
-inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite, int32_t* order, uint8_t* cut_kind,
-                      Cuts* cuts, bool split, int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
+template <bool kAvx2 = false>
+__attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite,
+                                                     int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                     int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
   const int32_t n = re - rb;
   int32_t first = 0, faces = 0;
   bool manifold = false;
-  switch (n) {
-    case 3: manifold = match_manifold<3>(vc, rb, opposite, order, first, faces); break;
-    case 4: manifold = match_manifold<4>(vc, rb, opposite, order, first, faces); break;
-    case 5: manifold = match_manifold<5>(vc, rb, opposite, order, first, faces); break;
-    case 6: manifold = match_manifold<6>(vc, rb, opposite, order, first, faces); break;
-    case 7: manifold = match_manifold<7>(vc, rb, opposite, order, first, faces); break;
-    case 8: manifold = match_manifold<8>(vc, rb, opposite, order, first, faces); break;
-    default: break;
+  if constexpr (kAvx2) {
+#if ITEAS_AVX2_MATCH
+    if (n >= 3 && n <= 8) manifold = match_manifold_avx2(vc, rb, n, opposite, order, first, faces);
+#endif
+  } else {
+    switch (n) {
+      case 3: manifold = match_manifold<3>(vc, rb, opposite, order, first, faces); break;
+      case 4: manifold = match_manifold<4>(vc, rb, opposite, order, first, faces); break;
+      case 5: manifold = match_manifold<5>(vc, rb, opposite, order, first, faces); break;
+      case 6: manifold = match_manifold<6>(vc, rb, opposite, order, first, faces); break;
+      case 7: manifold = match_manifold<7>(vc, rb, opposite, order, first, faces); break;
+      case 8: manifold = match_manifold<8>(vc, rb, opposite, order, first, faces); break;
+      default: break;
+    }
   }
   if (manifold) {  // closed fans, as the generic walk below would find
     if (split && faces != n) return false;
@@ -238,9 +341,57 @@ inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* 
   return true;
 }
 
+// The matching of runs [begin, end), run r being vertex r's (or, with
+// |vertex_of|, vertex vertex_of[r]'s); true when some vertex has several
+// fans (recorded in |several| when |split|).
+template <bool kAvx2>
+__attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, int64_t begin, int64_t end,
+                                                       const int32_t* vertex_of, int32_t* opposite, int32_t* order,
+                                                       uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                       int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
+  RunScratch scratch;
+  bool found = false;
+  for (int64_t r = begin; r < end; ++r) {
+    const int32_t rb = vc.offset[r], re = vc.offset[r + 1];
+    if (re == rb) continue;
+    const int64_t a = vertex_of ? vertex_of[r] : r;
+    if (!match_run<kAvx2>(vc, rb, re, opposite, order, cut_kind, cuts, split, vertex_corner[a], fan[a], scratch)) {
+      several[a] = 1;
+      found = true;
+    }
+  }
+  return found;
+}
+
+#if ITEAS_AVX2_MATCH
+__attribute__((target("avx2"))) bool match_range_avx2(const VertexCorners& vc, int64_t begin, int64_t end,
+                                                       const int32_t* vertex_of, int32_t* opposite, int32_t* order,
+                                                       uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                       int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
+  return match_range<true>(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
+                           several);
+}
+#endif
+
+// match_range with the compares of runs of 3-8 in AVX2 registers where
+// |wide| and the processor has AVX2 (the same table either way).
+bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, const int32_t* vertex_of,
+                int32_t* opposite, int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split, int32_t* vertex_corner,
+                int32_t* fan, uint8_t* several) {
+#if ITEAS_AVX2_MATCH
+  if (wide && has_avx2())
+    return match_range_avx2(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
+                            several);
+#else
+  (void)wide;
+#endif
+  return match_range<false>(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
+                            several);
+}
+
 }  // namespace
 
-TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order) {
+TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order, bool wide) {
   TopologyReport report;
   const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
@@ -284,18 +435,9 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   std::atomic<int64_t> cut_corners{0};
   std::atomic<bool> odd_cuts{false}, any_several{false};
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
-    RunScratch scratch;
     Cuts cuts;
-    bool found = false;
-    for (int64_t a = begin; a < end; ++a) {
-      const int32_t rb = vc.offset[a], re = vc.offset[a + 1];
-      if (re == rb) continue;
-      if (!match_run(vc, rb, re, opposite_.data(), order, cut_kind.data(), &cuts, split_vertices, vertex_corner_[a],
-                     fan_[a], scratch)) {
-        several[a] = 1;
-        found = true;
-      }
-    }
+    const bool found = match_runs(wide, vc, begin, end, nullptr, opposite_.data(), order, cut_kind.data(), &cuts,
+                                  split_vertices, vertex_corner_.data(), fan_.data(), several.data());
     if (found) any_several.store(true, std::memory_order_relaxed);
     if (cuts.corners) cut_corners.fetch_add(cuts.corners, std::memory_order_relaxed);
     if (cuts.not_boundary) odd_cuts.store(true, std::memory_order_relaxed);
@@ -433,12 +575,8 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   VertexCorners vc;
   vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {
-    RunScratch scratch;
-    for (int64_t r = begin; r < end; ++r) {
-      const int32_t rb = vc.offset[r], re = vc.offset[r + 1], v = vertex_of[r];
-      if (re > rb)
-        match_run(vc, rb, re, opposite.data(), nullptr, nullptr, nullptr, false, vertex_corner[v], fan[v], scratch);
-    }
+    match_runs(true, vc, begin, end, vertex_of.data(), opposite.data(), nullptr, nullptr, nullptr, false,
+               vertex_corner.data(), fan.data(), nullptr);
   }, kVertexGrain);
   opposite_.swap(opposite);
   vertex_corner_.swap(vertex_corner);

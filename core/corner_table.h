@@ -67,7 +67,9 @@ class CornerTable {
   // Builds opposites for |mesh|. Splits non-manifold vertices in |mesh| (adding
   // vertices with the same position, wedges follow) when |split_vertices|.
   // |record_order|: also keep each vertex's fan in walk order (fan_order()).
-  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false);
+  // |wide|: runs of 3-8 corners matched in AVX2 registers where the
+  // processor has AVX2; false: SSE2 only, for tests (the same table).
+  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false, bool wide = true);
 
   // The table of |mesh| made from this one, that of the mesh it was refined
   // from, equal to what build(mesh, false) gives: |kept_from| per face of

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <cstring>
 
+#include "core/corner_table.h"
 #include "core/refine.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
@@ -23,6 +24,19 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   m.materialize();
   iteas::drop_degenerate_faces(m);
   if (m.num_faces() == 0) return 0;
+  {
+    // Oracle: the corner table's matching in AVX2 registers (where the
+    // processor has AVX2) and with SSE2 alone give the same table.
+    iteas::Mesh a = m, b = m;
+    iteas::CornerTable narrow, wide;
+    const iteas::TopologyReport ra = narrow.build(a, true, 1, true, false);
+    const iteas::TopologyReport rb = wide.build(b, true, 1, true, true);
+    bool same = a.corner_vertex == b.corner_vertex && narrow.opposites() == wide.opposites() &&
+                narrow.fans() == wide.fans() && ra.boundary_edges == rb.boundary_edges &&
+                ra.non_manifold_edges == rb.non_manifold_edges && ra.split_vertices == rb.split_vertices;
+    for (int32_t v = 0; same && v < a.num_vertices(); ++v) same = narrow.vertex_corner(v) == wide.vertex_corner(v);
+    if (!same) __builtin_trap();
+  }
   iteas::RefineOptions o;
   o.mode = mode == 0 ? iteas::Mode::kIteas : (mode == 1 ? iteas::Mode::kUniform : iteas::Mode::kFixed);
   o.levels = levels;
