@@ -8,6 +8,7 @@
 #include <immintrin.h>
 #endif
 
+#include "core/cpu_features.h"
 #include "core/parallel.h"
 
 namespace iteas {
@@ -238,19 +239,11 @@ struct WeightTable {
 };
 const WeightTable kWeights;  // immutable after static initialisation
 
-#if defined(__GNUC__) && defined(__x86_64__)
+#if ITEAS_X86_FEATURES
 // Sums with AVX where the processor has it (regular stencils and ring
 // points; the same bits as SSE2).
 #define ITEAS_AVX_SUM 1
-// Asked once, on first use (__builtin_cpu_init: safe even before the
-// libgcc constructor that would set the answer up has run).
-bool has_avx() {
-  static const bool yes = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx") != 0;
-  }();
-  return yes;
-}
+bool has_avx() { return cpu_has(CpuFeature::kAvx); }
 #endif
 
 #if defined(__SSE2__)

@@ -4,14 +4,15 @@
 #include <atomic>
 #include <unordered_map>
 
-#if defined(__x86_64__) && defined(__GNUC__)
+#include "core/cpu_features.h"
+#include "core/parallel.h"
+
+#if ITEAS_X86_FEATURES
 #include <immintrin.h>
 #define ITEAS_AVX2_MATCH 1
 #else
 #define ITEAS_AVX2_MATCH 0
 #endif
-
-#include "core/parallel.h"
 
 namespace iteas {
 namespace {
@@ -118,16 +119,33 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
   }
 }
 
+// The fan of a run of n entries whose matching |right| (entry -> the entry
+// turning right from it) is a permutation: the walk from right[0] is a
+// cycle of |faces| <= n steps. It takes n steps whatever its length (no
+// exit to mispredict), counting those before it returns to |first|; order
+// entries past the cycle are written too, never read (a fan order is read
+// only as far as the fan's recorded size).
+__attribute__((always_inline)) inline void walk_fan(const int32_t* corners, const int32_t* right, int n,
+                                                    int32_t* order, int32_t& first, int32_t& faces) {
+  first = right[0];
+  int32_t x = first, count = 0;
+  bool back = false;
+  for (int step = 0; step < n; ++step) {
+    if (order) order[step] = corners[x];
+    x = right[x];
+    count += !back;
+    back |= x == first;
+  }
+  faces = count;
+}
+
 // A run of N corners (3 <= N <= 8) whose every edge is matched once each way,
 // as at nearly every vertex: the matching below with N known to the compiler.
 // Its loops are unrolled (no exit to mispredict: N varies from vertex to
-// vertex) and the fan walk takes N steps whatever its length, counting the
-// steps before it returns to |first|. False when some edge is not matched
-// once each way; the generic pass then rewrites this run's opposites.
-// Otherwise |right| is a permutation (two entries matching the same one would
-// share their next vertex), so the walk from |first| is a cycle of |faces|
-// <= N steps; order entries past it are written too, never read (a fan order
-// is read only as far as the fan's recorded size, |faces|).
+// vertex). False when some edge is not matched once each way; the generic
+// pass then rewrites this run's opposites. Otherwise |right| is a
+// permutation (two entries matching the same one would share their next
+// vertex), and walk_fan follows it.
 template <int N>
 inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order, int32_t& first,
                            int32_t& faces) {
@@ -149,16 +167,7 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   // every entry being matched (two entries with the same next b would match
   // the same entry, leaving another unmatched).
   if (bad | (matched ^ ((1u << N) - 1))) return false;
-  first = right[0];
-  int32_t x = first, count = 0;
-  bool back = false;
-  for (int step = 0; step < N; ++step) {
-    if (order) order[rb + step] = corners[x];
-    x = right[x];
-    count += !back;
-    back |= x == first;
-  }
-  faces = count;
+  walk_fan(corners, right, N, order ? order + rb : nullptr, first, faces);
   return true;
 }
 
@@ -228,25 +237,8 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
   _mm256_store_si256(reinterpret_cast<__m256i*>(after), _mm256_permutevar8x32_epi32(next, m));
   _mm256_store_si256(reinterpret_cast<__m256i*>(r), right);
   for (int i = 0; i < n; ++i) opposite[before[i]] = after[i];
-  first = r[0];
-  int32_t x = first, count = 0;
-  bool back = false;
-  for (int step = 0; step < n; ++step) {
-    if (order) order[rb + step] = corners[x];
-    x = r[x];
-    count += !back;
-    back |= x == first;
-  }
-  faces = count;
+  walk_fan(corners, r, n, order ? order + rb : nullptr, first, faces);
   return true;
-}
-
-bool has_avx2() {
-  static const bool yes = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx2") != 0;
-  }();
-  return yes;
 }
 #endif
 
@@ -379,7 +371,7 @@ bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, 
                 int32_t* opposite, int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split, int32_t* vertex_corner,
                 int32_t* fan, uint8_t* several) {
 #if ITEAS_AVX2_MATCH
-  if (wide && has_avx2())
+  if (wide && cpu_has(CpuFeature::kAvx2))
     return match_range_avx2(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
                             several);
 #else

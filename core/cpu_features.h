@@ -1,0 +1,25 @@
+// What the processor can run, for the code paths compiled for more than the
+// x86-64 baseline (chosen at run time, each with an SSE2 twin that gives the
+// same results).
+#pragma once
+
+namespace iteas {
+
+#if defined(__GNUC__) && defined(__x86_64__)
+#define ITEAS_X86_FEATURES 1
+enum class CpuFeature { kAvx, kAvx2 };
+// Asked once, on first use (__builtin_cpu_init: safe even before the libgcc
+// constructor that would set the answers up has run).
+inline bool cpu_has(CpuFeature f) {
+  static const bool avx = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx") != 0;
+  }();
+  static const bool avx2 = __builtin_cpu_supports("avx2") != 0;  // after avx's: cpu_init has run
+  return f == CpuFeature::kAvx ? avx : avx2;
+}
+#else
+#define ITEAS_X86_FEATURES 0
+#endif
+
+}  // namespace iteas
