@@ -67,7 +67,7 @@ __attribute__((always_inline)) static inline float fast_atan2_pos(float y, float
 #endif
 // These loops are plain C++ that GCC vectorises, so GCC's target_clones
 // makes their AVX versions (butterfly.cpp's sums are written with AVX
-// intrinsics instead and pick their version with has_avx()).
+// intrinsics instead and pick their version with cpu_has(), core/cpu_features.h).
 // The AVX clones are chosen by an ifunc resolver, which runs while the
 // program is being loaded: under ThreadSanitizer, before its runtime is
 // set up, where the resolver's instrumented code crashes (the sanitizer

@@ -243,7 +243,6 @@ const WeightTable kWeights;  // immutable after static initialisation
 // Sums with AVX where the processor has it (regular stencils and ring
 // points; the same bits as SSE2).
 #define ITEAS_AVX_SUM 1
-bool has_avx() { return cpu_has(CpuFeature::kAvx); }
 #endif
 
 #if defined(__SSE2__)
@@ -411,7 +410,7 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
   const RingArrays r{rings.offset.data(), vclass.valence.data(), rings.neighbour.data(), mesh.positions.data(),
                      rings.point.data()};
 #if ITEAS_AVX_SUM
-  wide = wide && has_avx();
+  wide = wide && cpu_has(CpuFeature::kAvx);
 #else
   wide = false;
 #endif
@@ -825,7 +824,7 @@ void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64
   if (!(ctx.green && !ctx.green->empty()) && ctx.tension == 0 && !(ctx.sharp && !ctx.sharp->empty())) {
     const View<false> view(ctx);
 #if ITEAS_AVX_SUM
-    if (ctx.wide_sums && has_avx()) {
+    if (ctx.wide_sums && cpu_has(CpuFeature::kAvx)) {
       plain_points_avx(view, corners, count, positions, out);
       return;
     }

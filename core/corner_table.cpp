@@ -260,7 +260,7 @@ struct Cuts {
   int64_t corners = 0;
   bool not_boundary = false;
 };
-template <bool kAvx2 = false>
+template <bool kAvx2>
 __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite,
                                                      int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split,
                                                      int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
