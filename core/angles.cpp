@@ -144,12 +144,82 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   edge_angles(mesh, ct, theta, threads, CarriedAngles());
 }
 
+// atan(√z)/√z = Σ (-1)^n z^n / (2n + 1) on [0, 0.1716] (tan²(π/8) =
+// 0.17157...), economised to degree 10: the series to degree 40, then the
+// highest terms traded for shifted Chebyshev polynomials one by one, in
+// exact rational arithmetic (docs/performance/atan_fit.py); it departs from
+// the function by under 3.4e-17, a third of a double's unit in the last place.
+static constexpr double kAtanSeries[11] = {
+    1.0, -0.33333333333328574, 0.19999999998880624, -0.1428571418286124, 0.11111106251209447,
+    -0.09090774601216603, 0.0768997355213338, -0.06640397080889007, 0.0568915148219518,
+    -0.04350236765267998, 0.021160659406873446};
+
+// atan2(y, x) for y >= 0 in double, within a few units in the last place:
+// a = min / max of y and |x| in [0, 1]; above tan(π/8), atan a = π/4 +
+// atan((a - 1) / (a + 1)); then the series on |t| <= tan(π/8); then the
+// octant. Selects only, so loops over it vectorise. y = |x| = 0 gives NaN.
+__attribute__((always_inline)) static inline double atan2_pos(double y, double x) {
+  const double ax = __builtin_fabs(x);
+  const double mx = y > ax ? y : ax, mn = y > ax ? ax : y;
+  const double a = mn / mx;
+  const bool high = a > 0.41421356237309503;
+  const double t = (high ? a - 1.0 : a) / (high ? a + 1.0 : 1.0);
+  const double z = t * t;
+  double p = kAtanSeries[10];
+  for (int i = 9; i >= 0; --i) p = p * z + kAtanSeries[i];
+  double r = t * p;
+  r = high ? M_PI / 4 + r : r;
+  r = y > ax ? M_PI / 2 - r : r;
+  r = x < 0 ? M_PI - r : r;
+  return r;
+}
+
+// Unit normals in double of the faces whose points are gathered in pt (a,
+// q, r times x, y, z), with face_normal's operations in its order, so its
+// bits; NaN where face_normal says zero area (or not finite). (Doubles only,
+// so the loop runs four to a register.)
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void unit_normals(const float* const* __restrict pt, int n,
+                                                                   double* __restrict nx, double* __restrict ny,
+                                                                   double* __restrict nz) {
+  const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
+  const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
+  const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
+  for (int i = 0; i < n; ++i) {
+    const double u0 = double(qx[i]) - ax[i], u1 = double(qy[i]) - ay[i], u2 = double(qz[i]) - az[i];
+    const double w0 = double(rx[i]) - ax[i], w1 = double(ry[i]) - ay[i], w2 = double(rz[i]) - az[i];
+    const double x = u1 * w2 - u2 * w1, y = u2 * w0 - u0 * w2, z = u0 * w1 - u1 * w0;
+    const double len = __builtin_sqrt(x * x + y * y + z * z);
+    const double scale = u0 * u0 + u1 * u1 + u2 * u2 + w0 * w0 + w1 * w1 + w2 * w2;
+    const bool ok = (len > 1e-12 * scale) & (len <= __DBL_MAX__);
+    const double nan = __builtin_nan("");
+    nx[i] = ok ? x / len : nan;
+    ny[i] = ok ? y / len : nan;
+    nz[i] = ok ? z / len : nan;
+  }
+}
+
+// Per edge of a block (both unit normals gathered, one array per
+// coordinate): angle_between's sine and cosine (its operations, so its
+// bits), then atan2_pos in degrees, in double.
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void exact_degrees(const double* const* __restrict n, int count,
+                                                                    double* __restrict out) {
+  const double *__restrict ax = n[0], *__restrict ay = n[1], *__restrict az = n[2];
+  const double *__restrict gx = n[3], *__restrict gy = n[4], *__restrict gz = n[5];
+  for (int i = 0; i < count; ++i) {
+    const double cx = ay[i] * gz[i] - az[i] * gy[i], cy = az[i] * gx[i] - ax[i] * gz[i],
+                 cz = ax[i] * gy[i] - ay[i] * gx[i];
+    const double dot = ax[i] * gx[i] + ay[i] * gy[i] + az[i] * gz[i];
+    out[i] = atan2_pos(__builtin_sqrt(cx * cx + cy * cy + cz * cz), dot) * (180.0 / M_PI);
+  }
+}
+
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
                  const CarriedAngles& carried) {
-  // Fixed chunks of faces: each computes the normals of its faces that have
-  // an edge to compute once (neighbours outside the chunk on the fly) and
-  // each edge's angle once, at its smaller corner, for both corners. Values
-  // equal normal_angle's bit for bit.
+  // Fixed chunks of faces: each lists the edges it computes (each edge at
+  // its smaller corner, for both corners), the faces whose normals they need
+  // (its own once each; a neighbour in a later chunk once per edge), then
+  // computes the normals and the angles in vectorised loops over blocks.
+  // Values equal normal_angle's bit for bit.
   // The NaN fill first, on all threads (a corner's value may be written from
   // another chunk, that of its opposite).
   const int32_t nc = ct.num_corners();
@@ -157,19 +227,19 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   parallel_for(nc, threads, [&](int64_t b, int64_t e) {
     std::fill(theta.data() + b, theta.data() + e, std::numeric_limits<float>::quiet_NaN());
   });
-  // (The chunks only bound the normals cached: any size gives the same
+  // (The chunks only bound the normals held: any size gives the same
   // angles. On more than one thread, about eight per thread: an edge is
   // computed by the chunk of its smaller corner, so where faces come in no
   // spatial order the first chunks hold most of the edges (chunk k of n about
   // (n - k) / n of its faces' edges), and a thread left with a long first
-  // chunk held the other up. On one, 4096 faces: a neighbour outside the
-  // chunk has its normal computed on the fly, once per edge.)
+  // chunk held the other up.)
   const int64_t nf = nc / 3;
   const int64_t used = resolve_threads(threads);
   const int64_t kFaces = used == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * used)));
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
+  const float* p = mesh.positions.data();
   // The angle carried for corner c, or -1 when there is none (an angle is
   // never negative; a carried NaN is a zero-area face's).
   auto carried_at = [&](int32_t c) -> float {
@@ -177,37 +247,117 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     return from < 0 ? -1.0f : carried.theta[from];
   };
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
-    Array<double> cache(3 * kFaces);  // written before read, as state says
-    Array<uint8_t> state(kFaces);     // per face of the chunk: 0 zero area, 1 normal cached, 2 not yet computed
+    // Written before read: slot per face of the chunk (-1: not listed), the
+    // faces listed (the chunk's own at most once, a later chunk's once per
+    // edge), the edges (corner and the slots of its two faces), the normals
+    // per slot.
+    Array<int32_t> slot(kFaces), faces(4 * kFaces + 1), edges(9 * kFaces + 3);
+    Array<double> normals;
+    constexpr int kBlock = 256;
+    float points[9][kBlock];
+    const float* pt[9];
+    for (int j = 0; j < 9; ++j) pt[j] = points[j];
+    double gathered[6][kBlock];
+    const double* g6[6];
+    for (int j = 0; j < 6; ++j) g6[j] = gathered[j];
+    int32_t corner[kBlock];
+    double degrees[kBlock];
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
-      std::fill(state.data(), state.data() + (f1 - f0), uint8_t(2));
-      // A face's normal, computed when an edge first needs it.
-      auto normal = [&](int64_t f) -> const double* {
-        uint8_t& st = state[f - f0];
-        if (st == 2) st = uint8_t(face_normal(mesh, int32_t(f), &cache[3 * size_t(f - f0)]));
-        return st ? &cache[3 * size_t(f - f0)] : nullptr;
-      };
-      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-        const int32_t d = opp[c];
-        if (d < c) continue;  // boundary (-1), or done at the smaller corner
-        const float t = carried_at(c);
-        if (!(t < 0.0f)) {
-          theta[c] = theta[d] = t;
-          continue;
+      int32_t* sl = slot.data();
+      int32_t* fl = faces.data();
+      int32_t* el = edges.data();
+      int32_t nl = 0, ne = 0;
+      if (!carried.theta) {
+        // Every edge of the chunk is computed: every face's normal (slot f -
+        // f0), and a later chunk's face once per edge, after them. No
+        // branches: whether a corner holds an edge follows no pattern.
+        nl = int32_t(f1 - f0);
+        for (int32_t i = 0; i < nl; ++i) fl[i] = int32_t(f0) + i;
+        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+          const int32_t d = opp[c], g = d / 3;  // d < c (or -1): no edge here
+          const bool keep = d > c, far = g >= f1;
+          el[3 * ne] = c;
+          el[3 * ne + 1] = c / 3 - int32_t(f0);
+          el[3 * ne + 2] = far ? nl : g - int32_t(f0);
+          fl[nl] = g;
+          nl += keep & far;
+          ne += keep;
         }
-        const double* nf1 = normal(c / 3);
-        if (!nf1) continue;
-        const int64_t g = d / 3;
-        double far[3];
-        const double* ng = far;
-        if (g < f1) {
-          if (!(ng = normal(g))) continue;
-        } else if (!face_normal(mesh, int32_t(g), far)) {
-          continue;
+      } else {
+        std::fill(sl, sl + (f1 - f0), -1);
+        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+          const int32_t d = opp[c];
+          if (d < c) continue;  // boundary (-1), or done at the smaller corner
+          const float t = carried_at(c);
+          if (!(t < 0.0f)) {
+            theta[c] = theta[d] = t;
+            continue;
+          }
+          int32_t& s1 = sl[c / 3 - f0];
+          if (s1 < 0) { s1 = nl; fl[nl++] = c / 3; }
+          const int32_t g = d / 3;
+          int32_t s2;
+          if (g >= f1) {  // a later chunk's face
+            s2 = nl;
+            fl[nl++] = g;
+          } else {
+            int32_t& s = sl[g - f0];
+            if (s < 0) { s = nl; fl[nl++] = g; }
+            s2 = s;
+          }
+          el[3 * ne] = c;
+          el[3 * ne + 1] = s1;
+          el[3 * ne + 2] = s2;
+          ++ne;
         }
-        theta[c] = theta[d] = angle_between(nf1, ng);
       }
+      // The normals, a block of faces at a time.
+      normals.resize(3 * size_t(nl));
+      for (int64_t i0 = 0; i0 < nl; i0 += kBlock) {
+        const int n = int(std::min<int64_t>(kBlock, nl - i0));
+        for (int i = 0; i < n; ++i) {
+          const int32_t* t = cv + 3 * size_t(fl[i0 + i]);
+          for (int j = 0; j < 3; ++j) {
+            const float* x = p + 3 * size_t(t[j]);
+            for (int m = 0; m < 3; ++m) points[3 * j + m][i] = x[m];
+          }
+        }
+        unit_normals(pt, n, &normals[i0], &normals[nl + i0], &normals[2 * nl + i0]);
+      }
+      // The angles of the edges whose faces both have a normal, a block at a
+      // time. An angle rounds to the float the library's atan2 gives, but
+      // where it lies within 1e-12 of it (far beyond atan2_pos's error, a
+      // few units in the 16th digit) of a boundary between two floats, or
+      // is not a number: those (about 2 in 100,000 edges) are computed by
+      // angle_between itself, so every angle has its bits.
+      const double* nx = normals.data();
+      int n = 0;
+      auto flush = [&] {
+        exact_degrees(g6, n, degrees);
+        for (int i = 0; i < n; ++i) {
+          const double d = degrees[i];
+          float a = float(d * (1.0 - 1e-12));
+          if (!(a == float(d * (1.0 + 1e-12)))) {
+            const double n1[3] = {gathered[0][i], gathered[1][i], gathered[2][i]};
+            const double n2[3] = {gathered[3][i], gathered[4][i], gathered[5][i]};
+            a = angle_between(n1, n2);
+          }
+          theta[corner[i]] = theta[opp[corner[i]]] = a;
+        }
+        n = 0;
+      };
+      for (int64_t i = 0; i < ne; ++i) {
+        const int32_t s1 = el[3 * i + 1], s2 = el[3 * i + 2];
+        if (std::isnan(nx[s1]) || std::isnan(nx[s2])) continue;  // a zero-area face: no angle
+        corner[n] = el[3 * i];
+        for (int j = 0; j < 3; ++j) {
+          gathered[j][n] = normals[j * nl + s1];
+          gathered[3 + j][n] = normals[j * nl + s2];
+        }
+        if (++n == kBlock) flush();
+      }
+      flush();
     }
   });
 }

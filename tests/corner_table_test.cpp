@@ -286,6 +286,75 @@ TEST(CornerTable, TwoClosedFansAtOneVertex) {
   }
 }
 
+// edge_angles computes its angles in blocks (normals and a polynomial atan2
+// in double, four to a register) and falls back on the library's atan2 only
+// where the float could round the other way: every angle must still be
+// normal_angle's bit for bit (NaN where it gives NaN), on every mesh we have
+// and on 400,000 hinges of two triangles whose angles cover 0-180 degrees
+// (flat, folded back, right angles, within 1e-6 degree of both ends) at
+// scales from 1e-3 to 1e3.
+TEST(Angles, ExactAnglesAreNormalAngleBitForBit) {
+  auto expect_exact = [](const Mesh& m, const std::string& name, int threads) {
+    CornerTable ct;
+    Mesh x = m;
+    ct.build(x, false, 1);
+    Array<float> theta;
+    edge_angles(x, ct, theta, threads);
+    int64_t differ = 0, edges = 0;
+    for (int32_t c = 0; c < ct.num_corners(); ++c) {
+      const int32_t d = ct.opposite(c);
+      if (d < c) continue;
+      ++edges;
+      const float t = normal_angle(x, c / 3, d / 3);
+      const bool same = std::isnan(t) ? std::isnan(theta[c]) && std::isnan(theta[d])
+                                      : std::memcmp(&t, &theta[c], 4) == 0 && std::memcmp(&t, &theta[d], 4) == 0;
+      if (!same && ++differ <= 3)
+        ADD_FAILURE() << name << " corner " << c << ": " << theta[c] << " vs normal_angle " << t;
+    }
+    EXPECT_EQ(differ, 0) << name << ", " << threads << " threads, " << edges << " edges";
+    return edges;
+  };
+  Mesh h;
+  uint64_t state = 12345;
+  auto uniform = [&state] {  // [0, 1)
+    state = state * 6364136223846793005ull + 1442695040888963407ull;
+    return double(state >> 11) * (1.0 / 9007199254740992.0);
+  };
+  const double specials[] = {0, 1e-6, 1e-3, 0.5, 1, 45, 60, 90, 120, 135, 179, 180 - 1e-3, 180 - 1e-6, 180};
+  const int kHinges = 400000;
+  for (int i = 0; i < kHinges; ++i) {
+    // Edge A-B along a random direction, C and D off it; D at a chosen
+    // angle phi round the edge from C for the first fifth, random after.
+    const double scale = std::pow(10.0, 6 * uniform() - 3);
+    double a[3], e[3], u[3];
+    for (int k = 0; k < 3; ++k) { a[k] = (uniform() - 0.5) * 10 * scale; e[k] = uniform() - 0.5; u[k] = uniform() - 0.5; }
+    const double el = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+    for (double& v : e) v /= el;
+    const double ue = u[0] * e[0] + u[1] * e[1] + u[2] * e[2];
+    for (int k = 0; k < 3; ++k) u[k] -= ue * e[k];
+    const double ul = std::sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    for (double& v : u) v /= ul;
+    const double w[3] = {e[1] * u[2] - e[2] * u[1], e[2] * u[0] - e[0] * u[2], e[0] * u[1] - e[1] * u[0]};
+    const double phi = (i < kHinges / 5 ? specials[i % 14] + (i / 14 % 3 - 1) * 1e-9 * (i % 7) : 180 * uniform()) * M_PI / 180;
+    const double t1 = uniform(), t2 = uniform();
+    const int32_t base = h.num_vertices();
+    for (int k = 0; k < 3; ++k) h.positions.push_back(float(a[k]));
+    for (int k = 0; k < 3; ++k) h.positions.push_back(float(a[k] + scale * e[k]));
+    for (int k = 0; k < 3; ++k) h.positions.push_back(float(a[k] + scale * (t1 * e[k] + u[k])));
+    for (int k = 0; k < 3; ++k)
+      h.positions.push_back(float(a[k] + scale * (t2 * e[k] + std::cos(phi) * u[k] + std::sin(phi) * w[k])));
+    for (int32_t v : {base, base + 1, base + 2, base + 1, base, base + 3}) h.corner_vertex.push_back(v);
+  }
+  EXPECT_EQ(expect_exact(h, "hinges", 1), kHinges);
+  expect_exact(h, "hinges", 2);
+  int meshes = 0;
+  for (const test::NamedMesh& c : test::valid_meshes(500000)) {
+    expect_exact(c.mesh, c.name, 1 + meshes % 2);
+    ++meshes;
+  }
+  EXPECT_GE(meshes, 10);
+}
+
 // The statistics' fast paths (single-precision normals, polynomial atan2, the
 // tangent form of the smallest angle) against exact angles.
 TEST(Angles, TriangleQualityMatchesExactSmallestAngles) {
