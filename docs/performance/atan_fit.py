@@ -1,4 +1,10 @@
-# Economized series for f(z) = atan(sqrt z)/sqrt z = sum (-1)^n z^n/(2n+1) on [0, Z].
+# The coefficients of kAtanSeries in core/angles.cpp (edge_angles' atan2).
+# f(z) = atan(sqrt z)/sqrt z = sum (-1)^n z^n/(2n+1) on [0, Z], Z just above
+# tan^2(pi/8): the series to degree M, then its highest terms traded one by one
+# for shifted Chebyshev polynomials (economisation), in exact rational
+# arithmetic. Prints the bound on |economised - f| (the terms traded plus the
+# series' tail) and the coefficients rounded to double.
+#   python3 docs/performance/atan_fit.py 10
 from fractions import Fraction as F
 import math, sys
 N = int(sys.argv[1]) if len(sys.argv) > 1 else 11
