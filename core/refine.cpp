@@ -747,6 +747,10 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   // Data pass.
   grow_vertices(m, next_v);
   parallel_for(int64_t(edges.size()), s.threads, [&](int64_t b, int64_t e) {
+    if (m.vertex_channels.empty()) {  // positions alone: the points in one call
+      butterfly_points(s.bctx, edges.data() + b, e - b, m.positions.data(), &m.positions[3 * (size_t(nv) + size_t(b))]);
+      return;
+    }
     std::vector<StencilTerm> terms;
     for (int64_t i = b; i < e; ++i) apply_stencil(m, s.bctx, edges[i], nv + int32_t(i), terms);
   });
@@ -952,9 +956,8 @@ void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
 // (the sum of its faces' unit normals). A tangential shift, as beside a
 // boundary of a flat patch, leaves the surface where it is. Without a usable
 // normal (zero-area faces, a full fold) the whole distance counts.
-float edge_deviation(const State& s, const Mesh& m, int32_t c) {
-  float p[3];
-  butterfly_point(s.bctx, c, m.positions.data(), p);
+// |p|: the edge's Butterfly point.
+float edge_deviation(const State& s, const Mesh& m, int32_t c, const float* p) {
   const float* a = &m.positions[3 * size_t(m.corner_vertex[next_corner(c)])];
   const float* b = &m.positions[3 * size_t(m.corner_vertex[prev_corner(c)])];
   double d[3], n[3] = {0, 0, 0};
@@ -1024,13 +1027,30 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
       }, 1536);
     }
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+      // A block of edges at a time: their Butterfly points in one call
+      // (as the data pass makes them), then their deviations.
+      constexpr int kBlock = 256;
+      int32_t list[kBlock];
+      float points[3 * kBlock];
+      int n = 0;
+      auto flush = [&] {
+        if (n == 0) return;
+        butterfly_points(s.bctx, list, n, m.positions.data(), points);
+        for (int i = 0; i < n; ++i) {
+          const int32_t c = list[i], oc = opp[c];
+          dev[c] = edge_deviation(s, m, c, &points[3 * i]);
+          if (oc >= 0) dev[oc] = dev[c];
+        }
+        n = 0;
+      };
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         const int32_t oc = opp[c];
         if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
         if (dev[c] >= 0.0f && (oc < 0 || dev[oc] >= 0.0f)) continue;  // carried (on both sides)
-        dev[c] = edge_deviation(s, m, c);
-        if (oc >= 0) dev[oc] = dev[c];
+        list[n] = c;
+        if (++n == kBlock) flush();
       }
+      flush();
     }, 1536);
     parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
       for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
