@@ -42,6 +42,20 @@ int usage(const std::string& msg) {
 bool read_file(const std::string& path, std::vector<uint8_t>* out) {
   std::ifstream f(path, std::ios::binary);
   if (!f) return false;
+  // One read of the whole file where its size is known (stream iterators
+  // copy a byte at a time); else (a pipe) the stream to its end.
+  f.seekg(0, std::ios::end);
+  const std::streamoff size = f.tellg();
+  if (size >= 0 && f.seekg(0, std::ios::beg)) {
+    out->resize(size_t(size));
+    f.read(reinterpret_cast<char*>(out->data()), std::streamsize(size));
+    if (f.gcount() == std::streamsize(size) && f.peek() == std::ifstream::traits_type::eof()) return true;
+    if (f.bad()) return false;
+    f.clear();  // the file changed size while read: the stream from the start
+    f.seekg(0, std::ios::beg);
+  } else {
+    f.clear();
+  }
   out->assign(std::istreambuf_iterator<char>(f), std::istreambuf_iterator<char>());
   return !f.bad();
 }

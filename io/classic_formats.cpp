@@ -1,12 +1,16 @@
-// Raw Draco (.drc), OBJ and PLY (read through Draco's decoders), OFF and STL
-// (small parsers of our own, limits checked before allocating), and the
-// .drc / .obj / .ply writers.
+// Raw Draco (.drc, through Draco's decoder), OBJ, PLY, OFF and STL (parsers
+// of our own, limits checked before allocating), and the .drc / .obj / .ply
+// writers.
 #include <algorithm>
 #include <array>
-#include <map>
+#include <charconv>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
+#include <map>
 #include <sstream>
+#include <string_view>
+#include <type_traits>
 #include <unordered_map>
 
 
@@ -70,35 +74,80 @@ Status slot_from_geometry(DecodedGeometry& g, const std::string& name, Document*
   return Status::Ok();
 }
 
-// Whitespace tokenizer over untrusted text.
+// Blanks as std::isspace and istream >> see them in the C locale (the
+// program never sets another): space, \t, \n, \v, \f, \r.
+inline bool blank(char c) { return c == ' ' || (c >= '\t' && c <= '\r'); }
+
+// [s, e) read whole as a number, with the result strtod, strtof or strtoll
+// give: std::from_chars for the plain decimal forms (correctly rounded, as
+// they are, with no copy of the token), the C function itself for anything
+// else ('+', hex, inf, nan, a value out of range, a malformed token).
+template <typename T>
+bool parse_whole(const char* s, const char* e, T* v) {
+  if (s < e && ((*s >= '0' && *s <= '9') || *s == '-' || *s == '.')) {
+    T x;
+    const std::from_chars_result r = std::from_chars(s, e, x);
+    bool plain = r.ec == std::errc() && r.ptr == e;
+    if constexpr (std::is_floating_point_v<T>) plain = plain && std::isfinite(x);
+    if (plain) {
+      *v = x;
+      return true;
+    }
+  }
+  const std::string t(s, e);
+  char* end = nullptr;
+  if constexpr (std::is_same_v<T, double>) *v = std::strtod(t.c_str(), &end);
+  else if constexpr (std::is_same_v<T, float>) *v = std::strtof(t.c_str(), &end);
+  else *v = std::strtoll(t.c_str(), &end, 10);
+  return !t.empty() && end == t.c_str() + t.size();
+}
+
+// Whitespace tokenizer over untrusted text ('#' starts a comment to the line's end).
 struct Tokens {
   const char* p;
   const char* end;
-  bool next(std::string* out) {
+  bool next(const char** s, const char** e) {
     while (p < end) {
       if (*p == '#') { while (p < end && *p != '\n') ++p; continue; }
-      if (std::isspace(static_cast<unsigned char>(*p))) { ++p; continue; }
+      if (blank(*p)) { ++p; continue; }
       break;
     }
     if (p >= end) return false;
-    const char* s = p;
-    while (p < end && !std::isspace(static_cast<unsigned char>(*p)) && *p != '#') ++p;
-    out->assign(s, p);
+    *s = p;
+    while (p < end && !blank(*p) && *p != '#') ++p;
+    *e = p;
+    return true;
+  }
+  bool next(std::string* out) {
+    const char *s, *e;
+    if (!next(&s, &e)) return false;
+    out->assign(s, e);
     return true;
   }
   bool number(double* v) {
-    std::string t;
-    if (!next(&t)) return false;
-    char* e = nullptr;
-    *v = std::strtod(t.c_str(), &e);
-    return e == t.c_str() + t.size() && !t.empty();
+    const char *s, *e;
+    return next(&s, &e) && parse_whole(s, e, v);
   }
   bool integer(int64_t* v) {
-    std::string t;
-    if (!next(&t)) return false;
-    char* e = nullptr;
-    *v = std::strtoll(t.c_str(), &e, 10);
-    return e == t.c_str() + t.size() && !t.empty();
+    const char *s, *e;
+    long long x = 0;
+    if (!next(&s, &e) || !parse_whole(s, e, &x)) return false;
+    *v = x;
+    return true;
+  }
+};
+
+// The blank-separated words of one line, as istream >> reads them.
+struct Words {
+  const char* p;
+  const char* end;
+  bool next(std::string_view* w) {
+    while (p < end && blank(*p)) ++p;
+    if (p >= end) return false;
+    const char* s = p;
+    while (p < end && !blank(*p)) ++p;
+    *w = std::string_view(s, size_t(p - s));
+    return true;
   }
 };
 
@@ -146,7 +195,7 @@ Status read_off(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
 Status read_obj(const uint8_t* data, size_t size, const ReadLimits& limits, DecodedGeometry* g) {
   std::vector<float> v, vt, vn;
   struct Corner { int32_t v, t, n; };
-  std::vector<Corner> corners;  // 3 per triangle
+  std::vector<Corner> corners, poly;  // 3 per triangle; a face line's
   const char* p = reinterpret_cast<const char*>(data);
   const char* end = p + size;
   int64_t line_no = 0;
@@ -154,51 +203,49 @@ Status read_obj(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
   while (p < end) {
     const char* eol = static_cast<const char*>(std::memchr(p, '\n', size_t(end - p)));
     if (!eol) eol = end;
-    std::string line(p, eol);
+    const char* hash = static_cast<const char*>(std::memchr(p, '#', size_t(eol - p)));
+    Words in{p, hash ? hash : eol};
     p = eol + 1;
     ++line_no;
-    const size_t hash = line.find('#');
-    if (hash != std::string::npos) line.resize(hash);
-    std::istringstream in(line);
-    std::string key;
-    if (!(in >> key)) continue;
+    std::string_view key;
+    if (!in.next(&key)) continue;
     if (key == "v" || key == "vn" || key == "vt") {
       std::vector<float>& dst = key == "v" ? v : (key == "vn" ? vn : vt);
       const int want = key == "vt" ? 2 : 3;
       for (int k = 0; k < want; ++k) {
-        std::string tok;
-        if (!(in >> tok)) {
+        std::string_view tok;
+        if (!in.next(&tok)) {
           if (key == "vt" && k == 1) { dst.push_back(0.0f); continue; }  // 1D texture coordinate
           return bad_line("too few coordinates");
         }
-        char* e = nullptr;
-        const float x = std::strtof(tok.c_str(), &e);
-        if (e != tok.c_str() + tok.size()) return bad_line("malformed number '" + tok.substr(0, 32) + "'");
+        float x;
+        if (!parse_whole(tok.data(), tok.data() + tok.size(), &x))
+          return bad_line("malformed number '" + std::string(tok.substr(0, 32)) + "'");
         dst.push_back(x);
       }
       if (int64_t(v.size() / 3) > limits.max_vertices) return Status::Error(ErrorKind::kTooLarge, "too_large", "OBJ has too many vertices");
     } else if (key == "f") {
-      std::vector<Corner> poly;
-      std::string tok;
-      while (in >> tok) {
+      poly.clear();
+      std::string_view tok;
+      while (in.next(&tok)) {
         Corner c{-1, -1, -1};
         int32_t* slot[3] = {&c.v, &c.t, &c.n};
         const int64_t counts[3] = {int64_t(v.size() / 3), int64_t(vt.size() / 2), int64_t(vn.size() / 3)};
         size_t pos = 0;
         for (int part = 0; part < 3 && pos <= tok.size(); ++part) {
           const size_t slash = std::min(tok.find('/', pos), tok.size());
-          const std::string num = tok.substr(pos, slash - pos);
+          const std::string_view num = tok.substr(pos, slash - pos);
           pos = slash + 1;
           if (num.empty()) {
-            if (part == 0) return bad_line("face entry '" + tok.substr(0, 32) + "' has no vertex index");
+            if (part == 0) return bad_line("face entry '" + std::string(tok.substr(0, 32)) + "' has no vertex index");
             continue;
           }
-          char* e = nullptr;
-          const long long i = std::strtoll(num.c_str(), &e, 10);
-          if (e != num.c_str() + num.size()) return bad_line("malformed index '" + num.substr(0, 32) + "'");
+          long long i = 0;
+          if (!parse_whole(num.data(), num.data() + num.size(), &i))
+            return bad_line("malformed index '" + std::string(num.substr(0, 32)) + "'");
           const long long resolved = i < 0 ? counts[part] + i : i - 1;
           if (i == 0 || resolved < 0 || resolved >= counts[part])
-            return bad("index_out_of_range", "OBJ line " + std::to_string(line_no) + ": index " + num.substr(0, 32) + " is out of range");
+            return bad("index_out_of_range", "OBJ line " + std::to_string(line_no) + ": index " + std::string(num.substr(0, 32)) + " is out of range");
           *slot[part] = int32_t(resolved);
           if (slash >= tok.size()) break;
         }
@@ -214,18 +261,26 @@ Status read_obj(const uint8_t* data, size_t size, const ReadLimits& limits, Deco
   // One point per distinct (position, texcoord, normal) triple.
   bool any_t = false, any_n = false;
   for (const Corner& c : corners) { any_t = any_t || c.t >= 0; any_n = any_n || c.n >= 0; }
+  // Numbered in order of first use; positions alone are looked up by index,
+  // triples in an ordered map (no hash whose collisions a file could choose).
   std::map<std::array<int32_t, 3>, int32_t> point_of;
+  std::vector<int32_t> point_of_position(any_t || any_n ? 0 : v.size() / 3, -1);
+  int32_t points = 0;
   DecodedAttribute pos{"POSITION", 3, {}}, uv{"TEXCOORD_0", 2, {}}, nor{"NORMAL", 3, {}};
+  g->faces.reserve(corners.size());
   for (const Corner& c : corners) {
-    auto [it, inserted] = point_of.emplace(std::array<int32_t, 3>{c.v, c.t, c.n}, int32_t(point_of.size()));
-    if (inserted) {
+    int32_t* found;
+    if (any_t || any_n) found = &point_of.emplace(std::array<int32_t, 3>{c.v, c.t, c.n}, -1).first->second;
+    else found = &point_of_position[size_t(c.v)];
+    if (*found < 0) {
+      *found = points++;
       for (int k = 0; k < 3; ++k) pos.data.push_back(v[3 * size_t(c.v) + k]);
       if (any_t) for (int k = 0; k < 2; ++k) uv.data.push_back(c.t >= 0 ? vt[2 * size_t(c.t) + k] : 0.0f);
       if (any_n) for (int k = 0; k < 3; ++k) nor.data.push_back(c.n >= 0 ? vn[3 * size_t(c.n) + k] : 0.0f);
     }
-    g->faces.push_back(it->second);
+    g->faces.push_back(*found);
   }
-  g->points = int64_t(point_of.size());
+  g->points = points;
   g->attributes.push_back(std::move(pos));
   if (any_n) g->attributes.push_back(std::move(nor));
   if (any_t) g->attributes.push_back(std::move(uv));

@@ -2,6 +2,10 @@
 // bytes (issue 2, points 2-3). Run under the Asan build too.
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <random>
 #include <thread>
@@ -233,6 +237,65 @@ TEST(Io, KeepsWhatIsNotTriangleGeometry) {
         continue;
       }
       EXPECT_EQ(in.gltf[key], out.gltf[key]) << key;
+    }
+  }
+}
+
+// The text readers parse plain decimals with std::from_chars and anything
+// else with the C functions: every number must still read as strtof (OBJ)
+// or strtod then float (OFF, ASCII PLY) read it, in every form (signs, '+',
+// no leading or trailing digit, exponents, 9 and 17 digits, subnormals, hex,
+// leading zeros), and a malformed one must still be refused.
+TEST(Io, TextNumbersReadAsTheCFunctionsReadThem) {
+  std::vector<std::string> tokens = {"0", "-0", "+1.5", ".5", "-.25", "5.", "1e3", "1E-3", "+2e+2", "007.50",
+                                     "0x1p3", "-0x1.8p-1", "1e-40", "-1.4e-45", "3.4028234e38", "123456789012345678"};
+  std::mt19937_64 g(11);
+  for (int i = 0; i < 3000; ++i) {
+    const double x = std::ldexp(double(g() >> 11), int(g() % 120) - 90) * (g() % 2 ? -1 : 1);
+    char buf[64];
+    std::snprintf(buf, sizeof buf, i % 3 == 0 ? "%.9g" : (i % 3 == 1 ? "%.17g" : "%.6e"), x);
+    tokens.push_back(buf);
+  }
+  // Vertex k is (token k, k, 0): distinct, so the welded positions keep their order.
+  std::string obj, off = "OFF\n" + std::to_string(tokens.size()) + " " + std::to_string(tokens.size() / 3) + " 0\n",
+                   ply = "ply\nformat ascii 1.0\nelement vertex " + std::to_string(tokens.size()) +
+                         "\nproperty float x\nproperty float y\nproperty float z\nelement face " +
+                         std::to_string(tokens.size() / 3) + "\nproperty list uchar int vertex_indices\nend_header\n";
+  for (size_t k = 0; k < tokens.size(); ++k) {
+    obj += "v " + tokens[k] + " " + std::to_string(k) + " 0\n";
+    off += tokens[k] + " " + std::to_string(k) + " 0\n";
+    ply += tokens[k] + " " + std::to_string(k) + " 0\n";
+  }
+  for (size_t f = 0; f < tokens.size() / 3; ++f) {
+    obj += "f " + std::to_string(3 * f + 1) + " " + std::to_string(3 * f + 2) + " " + std::to_string(3 * f + 3) + "\n";
+    const std::string tri = std::to_string(3 * f) + " " + std::to_string(3 * f + 1) + " " + std::to_string(3 * f + 2) + "\n";
+    off += "3 " + tri;
+    ply += "3 " + tri;
+  }
+  for (const auto& [fmt, text] : std::vector<std::pair<std::string, std::string>>{{"obj", obj}, {"off", off}, {"ply", ply}}) {
+    Document d;
+    const Status st = read_document(reinterpret_cast<const uint8_t*>(text.data()), text.size(), fmt, ReadLimits(), &d);
+    ASSERT_TRUE(st.ok()) << fmt << ": " << st.message;
+    ASSERT_EQ(d.meshes.size(), 1u);
+    const Mesh& m = d.meshes[0].mesh;
+    ASSERT_EQ(size_t(m.num_vertices()), tokens.size() / 3 * 3) << fmt;
+    int differ = 0;
+    for (int32_t v = 0; v < m.num_vertices(); ++v) {
+      const std::string& t = tokens[size_t(v)];
+      const float want = fmt == "obj" ? std::strtof(t.c_str(), nullptr) : float(std::strtod(t.c_str(), nullptr));
+      const float got = m.positions[3 * size_t(v)];
+      if (std::memcmp(&want, &got, 4) != 0 && ++differ <= 3) ADD_FAILURE() << fmt << " '" << t << "': " << got << " vs " << want;
+      EXPECT_EQ(m.positions[3 * size_t(v) + 1], float(v)) << fmt;
+    }
+    EXPECT_EQ(differ, 0) << fmt;
+  }
+  for (const std::string bad : {"1.5x", "1e", "--1", "1..2", "0x", "1,5"}) {
+    for (const auto& [fmt, text] : std::vector<std::pair<std::string, std::string>>{
+             {"obj", "v " + bad + " 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"},
+             {"off", "OFF\n3 1 0\n" + bad + " 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"}}) {
+      Document d;
+      EXPECT_FALSE(read_document(reinterpret_cast<const uint8_t*>(text.data()), text.size(), fmt, ReadLimits(), &d).ok())
+          << fmt << " '" << bad << "'";
     }
   }
 }
