@@ -325,6 +325,9 @@ Status load_primitive(const tinygltf::Model& m, const nlohmann::json& jprim, con
       if (!s.ok()) return s;
       if (int64_t(data.size() / comps) != out->count)
         return bad("bad_accessor", "morph target attribute " + semantic + " count differs from POSITION's");
+      // Read 3 per vertex below (found by fuzz/fuzz_read: a VEC2 target
+      // POSITION with the right count read past its end).
+      if (semantic == "POSITION" && comps != 3) return bad("bad_accessor", "morph target POSITION must be VEC3");
       if (semantic == "POSITION") tp = std::move(data);
       else out->attrs.push_back({"target" + std::to_string(t) + ":" + semantic, {comps, std::move(data)}});
     }

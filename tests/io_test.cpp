@@ -91,6 +91,17 @@ TEST(Io, NastyFilesFailCleanlyOrWarn) {
   }
 }
 
+// Found by fuzz/fuzz_read: a morph target's POSITION as VEC2 with the right
+// count passed the count check, then was read three floats per vertex.
+TEST(Io, MorphTargetPositionsMustBeVec3) {
+  const std::vector<uint8_t> b = test::read_bytes(test::data_dir() + "/nasty/morph_target_position_vec2.glb");
+  ASSERT_FALSE(b.empty());
+  Document d;
+  const Status s = read_document(b.data(), b.size(), "glb", ReadLimits(), &d);
+  EXPECT_FALSE(s.ok());
+  EXPECT_EQ(s.code, "bad_accessor") << s.message;
+}
+
 void expect_no_crash_on_prefixes(const std::string& path, size_t step) {
   const std::vector<uint8_t> b = test::read_bytes(path);
   ASSERT_FALSE(b.empty()) << path;
