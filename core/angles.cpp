@@ -174,6 +174,35 @@ __attribute__((always_inline)) static inline double atan2_pos(double y, double x
   return r;
 }
 
+// The corners' points of a block of up to 256 triangles, one array per
+// coordinate (a, q, r times x, y, z), for the vectorised loops below;
+// faces[i] (or first + i without a list) is triangle i.
+struct PointBlock {
+  static constexpr int kSize = 256;
+  float v[9][kSize];
+  const float* at[9];
+  PointBlock() {
+    for (int j = 0; j < 9; ++j) at[j] = v[j];
+  }
+  void gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n) {
+    if (faces) gather_faces(mesh, [&](int i) { return int64_t(faces[first + i]); }, n);
+    else gather_faces(mesh, [&](int i) { return first + i; }, n);
+  }
+  template <typename Face>
+  void gather_faces(const Mesh& mesh, Face face, int n) {
+    const float* p = mesh.positions.data();
+    const int32_t* cv = mesh.corner_vertex.data();
+    float(*out)[kSize] = v;
+    for (int i = 0; i < n; ++i) {
+      const int32_t* t = cv + 3 * size_t(face(i));
+      for (int k = 0; k < 3; ++k) {
+        const float* x = p + 3 * size_t(t[k]);
+        for (int j = 0; j < 3; ++j) out[3 * k + j][i] = x[j];
+      }
+    }
+  }
+};
+
 // Unit normals in double of the faces whose points are gathered in pt (a,
 // q, r times x, y, z), with face_normal's operations in its order, so its
 // bits; NaN where face_normal says zero area (or not finite). (Doubles only,
@@ -239,7 +268,6 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
-  const float* p = mesh.positions.data();
   // The angle carried for corner c, or -1 when there is none (an angle is
   // never negative; a carried NaN is a zero-area face's).
   auto carried_at = [&](int32_t c) -> float {
@@ -253,10 +281,8 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     // per slot.
     Array<int32_t> slot(kFaces), faces(4 * kFaces + 1), edges(9 * kFaces + 3);
     Array<double> normals;
-    constexpr int kBlock = 256;
-    float points[9][kBlock];
-    const float* pt[9];
-    for (int j = 0; j < 9; ++j) pt[j] = points[j];
+    constexpr int kBlock = PointBlock::kSize;
+    PointBlock points;
     double gathered[6][kBlock];
     const double* g6[6];
     for (int j = 0; j < 6; ++j) g6[j] = gathered[j];
@@ -316,14 +342,8 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       normals.resize(3 * size_t(nl));
       for (int64_t i0 = 0; i0 < nl; i0 += kBlock) {
         const int n = int(std::min<int64_t>(kBlock, nl - i0));
-        for (int i = 0; i < n; ++i) {
-          const int32_t* t = cv + 3 * size_t(fl[i0 + i]);
-          for (int j = 0; j < 3; ++j) {
-            const float* x = p + 3 * size_t(t[j]);
-            for (int m = 0; m < 3; ++m) points[3 * j + m][i] = x[m];
-          }
-        }
-        unit_normals(pt, n, &normals[i0], &normals[nl + i0], &normals[2 * nl + i0]);
+        points.gather(mesh, fl, i0, n);
+        unit_normals(points.at, n, &normals[i0], &normals[nl + i0], &normals[2 * nl + i0]);
       }
       // The angles of the edges whose faces both have a normal, a block at a
       // time. An angle rounds to the float the library's atan2 gives, but
@@ -539,30 +559,20 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   std::mutex mutex;
   Array<int64_t> all(kBins, 0);
   float min_angle = 180.0f;
-  const float* p = mesh.positions.data();
-  const int32_t* cv = mesh.corner_vertex.data();
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block of faces: the points gathered, the atan2 arguments (double
     // arithmetic) and the angles (vectorised loops), then the minimum and
     // the histogram.
-    constexpr int kBlock = 256;
+    constexpr int kBlock = PointBlock::kSize;
     float ys[kBlock], xs[kBlock], angles[kBlock];
-    float points[9][kBlock];
-    float* pt[9];
-    for (int j = 0; j < 9; ++j) pt[j] = points[j];
+    PointBlock points;
     Array<int32_t> h(kBins, 0);  // a piece holds fewer than 2^31 faces
     int32_t* bins = h.data();
     float lo = 180.0f;
     for (int32_t f0 = int32_t(b); f0 < int32_t(e); f0 += kBlock) {
       const int n = int(std::min(int64_t(kBlock), e - f0));
-      for (int i = 0; i < n; ++i) {
-        const int32_t* t = cv + 3 * size_t(f0 + i);
-        for (int k = 0; k < 3; ++k) {
-          const float* x = p + 3 * size_t(t[k]);
-          for (int j = 0; j < 3; ++j) points[3 * k + j][i] = x[j];
-        }
-      }
-      smallest_angle_arguments(pt, n, ys, xs);
+      points.gather(mesh, nullptr, f0, n);
+      smallest_angle_arguments(points.at, n, ys, xs);
       atan2_degrees(ys, xs, angles, n);
       for (int i = 0; i < n; ++i) {
         if (std::isnan(angles[i])) continue;  // repeated position: no angles
