@@ -351,7 +351,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       // few units in the 16th digit) of a boundary between two floats, or
       // is not a number: those (about 2 in 100,000 edges) are computed by
       // angle_between itself, so every angle has its bits.
-      const double* nx = normals.data();
+      const double* nm = normals.data();  // x of every slot, then y, then z
       int n = 0;
       auto flush = [&] {
         exact_degrees(g6, n, degrees);
@@ -369,11 +369,11 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       };
       for (int64_t i = 0; i < ne; ++i) {
         const int32_t s1 = el[3 * i + 1], s2 = el[3 * i + 2];
-        if (std::isnan(nx[s1]) || std::isnan(nx[s2])) continue;  // a zero-area face: no angle
+        if (std::isnan(nm[s1]) || std::isnan(nm[s2])) continue;  // a zero-area face: no angle
         corner[n] = el[3 * i];
         for (int j = 0; j < 3; ++j) {
-          gathered[j][n] = normals[j * nl + s1];
-          gathered[3 + j][n] = normals[j * nl + s2];
+          gathered[j][n] = nm[j * nl + s1];
+          gathered[3 + j][n] = nm[j * nl + s2];
         }
         if (++n == kBlock) flush();
       }

@@ -11,12 +11,14 @@ enum class CpuFeature { kAvx, kAvx2 };
 // Asked once, on first use (__builtin_cpu_init: safe even before the libgcc
 // constructor that would set the answers up has run).
 inline bool cpu_has(CpuFeature f) {
-  static const bool avx = [] {
+  struct Answers {
+    bool avx, avx2;
+  };
+  static const Answers yes = [] {
     __builtin_cpu_init();
-    return __builtin_cpu_supports("avx") != 0;
+    return Answers{__builtin_cpu_supports("avx") != 0, __builtin_cpu_supports("avx2") != 0};
   }();
-  static const bool avx2 = __builtin_cpu_supports("avx2") != 0;  // after avx's: cpu_init has run
-  return f == CpuFeature::kAvx ? avx : avx2;
+  return f == CpuFeature::kAvx ? yes.avx : yes.avx2;
 }
 #else
 #define ITEAS_X86_FEATURES 0

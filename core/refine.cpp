@@ -168,6 +168,18 @@ void apply_stencil(Mesh& m, const ButterflyContext& ctx, int32_t c, int32_t nv, 
   }
 }
 
+// The new vertices first, first + 1, ... of the edges at corners[0, n): with
+// positions alone, all their points in one butterfly_points call; else one
+// stencil each (applied to the morph deltas too).
+void apply_stencils(Mesh& m, const ButterflyContext& ctx, const int32_t* corners, int64_t n, int32_t first,
+                    std::vector<StencilTerm>& terms) {
+  if (m.vertex_channels.empty()) {
+    butterfly_points(ctx, corners, n, m.positions.data(), &m.positions[3 * size_t(first)]);
+    return;
+  }
+  for (int64_t i = 0; i < n; ++i) apply_stencil(m, ctx, corners[i], first + int32_t(i), terms);
+}
+
 void grow_vertices(Mesh& m, int64_t nv) {
   m.positions.resize(3 * size_t(nv));
   for (VertexChannel& vc : m.vertex_channels) vc.data.resize(3 * size_t(nv));
@@ -301,11 +313,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         n += canonical(c);
       }
       const int32_t first = int32_t(nv + edges_in[k]);
-      if (m.vertex_channels.empty()) {
-        butterfly_points(s.bctx, list.data(), n, m.positions.data(), &m.positions[3 * size_t(first)]);
-      } else {
-        for (int64_t i = 0; i < n; ++i) apply_stencil(m, s.bctx, list[i], first + int32_t(i), terms);
-      }
+      apply_stencils(m, s.bctx, list.data(), n, first, terms);
       // Raw pointers: the byte stores below may alias anything, which would
       // make the compiler reload every array's address after each of them.
       int32_t* ev = evert.data();
@@ -747,12 +755,8 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   // Data pass.
   grow_vertices(m, next_v);
   parallel_for(int64_t(edges.size()), s.threads, [&](int64_t b, int64_t e) {
-    if (m.vertex_channels.empty()) {  // positions alone: the points in one call
-      butterfly_points(s.bctx, edges.data() + b, e - b, m.positions.data(), &m.positions[3 * (size_t(nv) + size_t(b))]);
-      return;
-    }
     std::vector<StencilTerm> terms;
-    for (int64_t i = b; i < e; ++i) apply_stencil(m, s.bctx, edges[i], nv + int32_t(i), terms);
+    apply_stencils(m, s.bctx, edges.data() + b, e - b, nv + int32_t(b), terms);
   });
   if (wedges) {
     const int32_t w0 = m.num_wedges();
