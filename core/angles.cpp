@@ -2,11 +2,17 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <mutex>
 #include <sstream>
 
+#include "core/cpu_features.h"
 #include "core/parallel.h"
+
+#if ITEAS_X86_FEATURES
+#include <immintrin.h>
+#endif
 
 namespace iteas {
 
@@ -382,15 +388,140 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   });
 }
 
+// The per-piece tally of summarize_angles: counts, an exact sum (units of
+// 2^-40 degree in 128 bits: every angle of 2^-17 degree or more is a whole
+// number of units, a smaller one is cut to whole units, under 1e-12 degree),
+// the maximum and the 10-degree histogram.
+struct AngleTally {
+  static constexpr int kBins = 18;
+  static constexpr double kUnits = 1099511627776.0;  // 2^40 units per degree
+  __extension__ typedef __int128 Sum;
+  int64_t edges = 0, above = 0;
+  Sum sum = 0;
+  float max = 0;
+  int64_t hist[kBins] = {};
+
+  // Angle t (>= 0 or NaN), one at a time.
+  void add(float t, double threshold, double exclude) {
+    if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
+    ++edges;
+    sum += static_cast<int64_t>(double(t) * kUnits);  // t <= 180: under 2^48 units
+    max = std::max(max, t);
+    above += t > threshold;
+    hist[std::min(kBins - 1, std::max(0, int(t / 10.0f)))]++;
+  }
+};
+
+#if ITEAS_X86_FEATURES
+// add()'s comparisons as comparisons of floats, for the AVX2 tally: for a
+// float t, double(t) > threshold exactly when t reaches the smallest float
+// above the threshold, and double(t) >= exclude when t reaches the smallest
+// float at or above it; int(t / 10.0f) >= k exactly when t reaches the
+// smallest float whose quotient by 10 does (division is monotonic). A bound
+// no float reaches is NaN (every comparison with it is false).
+struct TallyBounds {
+  float above, excluded;
+  float bin[AngleTally::kBins];  // bin[k], k >= 1
+  TallyBounds(double threshold, double exclude) {
+    above = smallest_float(threshold, true);
+    excluded = exclude > 0 ? smallest_float(exclude, false) : std::numeric_limits<float>::quiet_NaN();
+    bin[0] = 0;
+    for (int k = 1; k < AngleTally::kBins; ++k) {
+      float t = 10.0f * float(k);
+      while (t / 10.0f >= float(k)) t = std::nextafter(t, 0.0f);
+      while (t / 10.0f < float(k)) t = std::nextafter(t, 1000.0f);
+      bin[k] = t;
+    }
+  }
+  // The smallest float f with double(f) > x (strict) or >= x.
+  static float smallest_float(double x, bool strict) {
+    const float inf = std::numeric_limits<float>::infinity();
+    if (std::isnan(x)) return std::numeric_limits<float>::quiet_NaN();
+    auto meets = [&](float f) { return strict ? double(f) > x : double(f) >= x; };
+    if (!meets(std::numeric_limits<float>::max())) return meets(inf) ? inf : std::numeric_limits<float>::quiet_NaN();
+    if (meets(-std::numeric_limits<float>::max())) return -std::numeric_limits<float>::max();
+    float f = float(x);  // within a step or two of the answer
+    while (!meets(f)) f = std::nextafter(f, inf);
+    while (meets(std::nextafter(f, -inf))) f = std::nextafter(f, -inf);
+    return f;
+  }
+};
+
+// AngleTally::add over t[0, n) (n < 2^31 / 8), eight angles at a time: the
+// same counts, sum, maximum and histogram. Valid angles are >= 0, so a
+// float's bits order as integers (the maximum); the units are cut in
+// doubles and read as integers through the bits of 1.5 * 2^52 + units; the
+// histogram counts, per bin, the angles that reach its bound, and only for
+// the eight angles where one reaches 10 degrees (most angles of a refined
+// level lie under it: one increment per angle into the first bin made each
+// wait for the one before).
+__attribute__((target("avx2"))) void tally_avx2(const float* t, int64_t n, const TallyBounds& b, AngleTally& out) {
+  const __m256 above = _mm256_set1_ps(b.above), excluded = _mm256_set1_ps(b.excluded);
+  const __m256 ten = _mm256_set1_ps(b.bin[1]);
+  const __m256d units = _mm256_set1_pd(AngleTally::kUnits), magic = _mm256_set1_pd(6755399441055744.0);
+  const __m256i magic_bits = _mm256_castpd_si256(magic);
+  __m256i edges = _mm256_setzero_si256(), over = edges, max_bits = edges, sum_lo = edges, sum_hi = edges;
+  __m256i reach[AngleTally::kBins];
+  for (__m256i& r : reach) r = _mm256_setzero_si256();
+  const int64_t whole = n - n % 8;
+  for (int64_t i = 0; i < whole; i += 8) {
+    const __m256 x = _mm256_loadu_ps(t + i);
+    const __m256 ok = _mm256_andnot_ps(_mm256_cmp_ps(x, excluded, _CMP_GE_OQ), _mm256_cmp_ps(x, x, _CMP_ORD_Q));
+    const __m256i oki = _mm256_castps_si256(ok);
+    edges = _mm256_sub_epi32(edges, oki);
+    over = _mm256_sub_epi32(over, _mm256_castps_si256(_mm256_and_ps(ok, _mm256_cmp_ps(x, above, _CMP_GE_OQ))));
+    const __m256 kept = _mm256_and_ps(ok, x);  // 0 where not counted
+    max_bits = _mm256_max_epi32(max_bits, _mm256_castps_si256(kept));
+    const __m256d lo = _mm256_round_pd(_mm256_mul_pd(_mm256_cvtps_pd(_mm256_castps256_ps128(kept)), units),
+                                       _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
+    const __m256d hi = _mm256_round_pd(_mm256_mul_pd(_mm256_cvtps_pd(_mm256_extractf128_ps(kept, 1)), units),
+                                       _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
+    sum_lo = _mm256_add_epi64(sum_lo, _mm256_sub_epi64(_mm256_castpd_si256(_mm256_add_pd(lo, magic)), magic_bits));
+    sum_hi = _mm256_add_epi64(sum_hi, _mm256_sub_epi64(_mm256_castpd_si256(_mm256_add_pd(hi, magic)), magic_bits));
+    if (_mm256_movemask_ps(_mm256_cmp_ps(kept, ten, _CMP_GE_OQ)) == 0) continue;
+    for (int k = 1; k < AngleTally::kBins; ++k)
+      reach[k] = _mm256_sub_epi32(
+          reach[k], _mm256_castps_si256(_mm256_cmp_ps(kept, _mm256_set1_ps(b.bin[k]), _CMP_GE_OQ)));
+  }
+  auto lanes32 = [](__m256i v) __attribute__((target("avx2"))) {
+    alignas(32) int32_t a[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(a), v);
+    int64_t s = 0;
+    for (int32_t x : a) s += x;
+    return s;
+  };
+  alignas(32) int64_t s[8];
+  _mm256_store_si256(reinterpret_cast<__m256i*>(s), sum_lo);
+  _mm256_store_si256(reinterpret_cast<__m256i*>(s + 4), sum_hi);
+  for (int64_t x : s) out.sum += x;
+  alignas(32) int32_t m[8];
+  _mm256_store_si256(reinterpret_cast<__m256i*>(m), max_bits);
+  float block_max = 0;
+  for (int32_t bits : m) {
+    float f;
+    std::memcpy(&f, &bits, sizeof f);
+    block_max = std::max(block_max, f);
+  }
+  out.max = std::max(out.max, block_max);
+  const int64_t counted = lanes32(edges);
+  out.edges += counted;
+  out.above += lanes32(over);
+  // Bin k holds the angles that reach bound k but not k + 1; the last bin
+  // all that reach it.
+  int64_t reached[AngleTally::kBins + 1] = {};
+  reached[0] = counted;
+  for (int k = 1; k < AngleTally::kBins; ++k) reached[k] = lanes32(reach[k]);
+  for (int k = 0; k < AngleTally::kBins; ++k) out.hist[k] += reached[k] - reached[k + 1];
+}
+#endif
+
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude, int threads) {
-  // The sum of the angles is kept exactly, in fixed point (units of 2^-40
-  // degree, in a 128-bit integer): every angle of 2^-17 degree or more is a
-  // whole number of units, a smaller one is cut to whole units (under 1e-12
-  // degree). Counts, the maximum and an exact sum do not depend on the order
-  // in which they are gathered, so each piece of the loop adds its own into
-  // the total under a lock, whatever the pieces (fixed chunks of 8192 faces
-  // combined in order left a small level on one thread or two uneven ones).
+  // The sum of the angles is kept exactly (AngleTally). Counts, the
+  // maximum and an exact sum do not depend on the order in which they are
+  // gathered, so each piece of the loop adds its own into the total under a
+  // lock, whatever the pieces (fixed chunks of 8192 faces combined in order
+  // left a small level on one thread or two uneven ones).
   // Without theta, the piece computes its faces' normals in blocks into a
   // small cache; an edge whose other face is in a later block of the piece
   // waits for it (about 6 % of a subdivided level's edges: subdivision keeps
@@ -400,11 +531,13 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   const int32_t nc = ct.num_corners();
   constexpr int64_t kFaces = 8192;
   const int64_t nf = nc / 3;
-  constexpr double kUnits = 1099511627776.0;  // 2^40 units per degree
-  __extension__ typedef __int128 Sum;
   std::mutex mutex;
   AngleSummary total;
-  Sum total_sum = 0;
+  AngleTally all;
+#if ITEAS_X86_FEATURES
+  const bool wide = cpu_has(CpuFeature::kAvx2);
+  const TallyBounds bounds(threshold, exclude);
+#endif
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block: the faces' normals, then per edge the sine and cosine of
     // the angle, then the angles (a vectorised loop), in edge order. The
@@ -428,23 +561,30 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       float n[3];
     };
     std::vector<std::vector<Waiting>> waiting(theta ? 0 : size_t((e - b + kFaces - 1) / kFaces));
-    // Accumulated in locals (not through references the stores might alias).
-    int64_t edges = 0, above = 0, hist[18] = {0};
-    Sum sum = 0;
-    float max = 0;
-    auto add = [&](float t) {
-      if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
-      ++edges;
-      sum += static_cast<int64_t>(double(t) * kUnits);  // t <= 180: under 2^48 units
-      max = std::max(max, t);
-      above += t > threshold;
-      hist[std::min(17, std::max(0, int(t / 10.0f)))]++;
+    AngleTally tally;
+    auto count = [&](const float* angles, int n) {
+      int i = 0;
+#if ITEAS_X86_FEATURES
+      if (wide) {
+        i = n - n % 8;
+        tally_avx2(angles, i, bounds, tally);
+      }
+#endif
+      for (; i < n; ++i) tally.add(angles[i], threshold, exclude);
     };
     for (int64_t f0 = b; f0 < e; f0 += kFaces) {
       const int64_t f1 = std::min(e, f0 + kFaces);
       if (theta) {
-        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c)
-          if (opp[c] > c) add((*theta)[c]);  // boundary (-1) or counted at the smaller corner
+        int n = 0;
+        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
+          if (opp[c] <= c) continue;  // boundary (-1) or counted at the smaller corner
+          ts[n] = (*theta)[c];
+          if (++n == kBlock) {
+            count(ts, n);
+            n = 0;
+          }
+        }
+        count(ts, n);
         continue;
       }
       face_normals_or_nan(mesh, f0, f1, cache.data());
@@ -452,7 +592,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       auto flush = [&] {
         sine_cosine(soa, n, ys, xs);
         atan2_degrees(ys, xs, ts, n);
-        for (int i = 0; i < n; ++i) add(ts[i]);
+        count(ts, n);
         n = 0;
       };
       // The normals' arrays as locals: the stores below may alias anything
@@ -486,13 +626,17 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       flush();
     }
     std::lock_guard<std::mutex> lock(mutex);
-    total.edges += edges;
-    total.above += above;
-    total.max = std::max(total.max, double(max));
-    total_sum += sum;
-    for (int i = 0; i < 18; ++i) total.histogram[i] += hist[i];
+    all.edges += tally.edges;
+    all.above += tally.above;
+    all.sum += tally.sum;
+    all.max = std::max(all.max, tally.max);
+    for (int k = 0; k < AngleTally::kBins; ++k) all.hist[k] += tally.hist[k];
   }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
-  total.mean = total.edges ? double(total_sum) / kUnits / double(total.edges) : 0;
+  total.edges = all.edges;
+  total.above = all.above;
+  total.max = double(all.max);
+  for (int k = 0; k < AngleTally::kBins; ++k) total.histogram[k] = all.hist[k];
+  total.mean = total.edges ? double(all.sum) / AngleTally::kUnits / double(total.edges) : 0;
   return total;
 }
 

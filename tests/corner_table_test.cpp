@@ -433,6 +433,83 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
   EXPECT_GE(checked, 10);
 }
 
+// The summary's tally (eight angles at a time where the processor has AVX2,
+// one at a time for the rest) against the definition, on angles placed
+// where it could go wrong: both sides of every histogram bound (the float
+// quotient t / 10.0f decides the bin), of the threshold and of the crease
+// exclusion, NaN, 0 and 180, and thresholds that are themselves angles, lie
+// between two floats, or are NaN. Blocks of every length mod 8: the faces
+// of a sphere, the last 0-15 of them dropped (their edges become boundaries,
+// which count nowhere); about a third of the edges take the angles listed,
+// the rest a pseudo-random one.
+TEST(Angles, SummaryTallyFollowsItsDefinition) {
+  const Mesh sphere = test::icosphere(4);
+  std::vector<float> special = {0.0f, 180.0f, std::nanf(""), 20.0f, 45.5f, 1e-30f, 5e-13f};
+  for (int k = 1; k <= 18; ++k) {
+    float t = 10.0f * float(k);
+    for (int step = 0; step < 4; ++step) t = std::nextafter(t, 0.0f);
+    for (int step = 0; step < 8; ++step, t = std::nextafter(t, 1000.0f)) special.push_back(t);
+  }
+  for (float x : {20.0f, 45.5f})
+    for (float t = std::nextafter(std::nextafter(x, 0.0f), 0.0f), end = std::nextafter(std::nextafter(x, 100.0f), 100.0f);
+         t <= end; t = std::nextafter(t, 100.0f))
+      special.push_back(t);
+  const double thresholds[] = {20.0, double(20.0f) + 1e-12, std::nextafter(20.0, 0.0), 0.0, -1.0, 1e9,
+                               std::nan("")};
+  const double excludes[] = {0.0, 45.5, std::nextafter(45.5, 100.0), 170.0};
+  uint32_t state = 12345;
+  for (int dropped = 0; dropped < 16; ++dropped) {
+    Mesh m = sphere;
+    m.corner_vertex.resize(m.corner_vertex.size() - 3 * size_t(dropped));
+    CornerTable ct;
+    ct.build(m, false, 1);
+    Array<float> theta(size_t(ct.num_corners()));
+    std::vector<float> listed;  // each interior edge's angle once
+    int32_t seen = 0;
+    for (int32_t c = 0; c < ct.num_corners(); ++c) {
+      const int32_t d = ct.opposite(c);
+      if (d < c) {
+        if (d < 0) theta[c] = 1.0f;  // a boundary: never counted, whatever it holds
+        continue;
+      }
+      float t;
+      if (seen % 3 == 0) {
+        t = special[size_t(seen / 3) % special.size()];
+      } else {
+        state = state * 1664525u + 1013904223u;
+        t = float(state >> 8) / float(1 << 24) * (seen % 5 == 0 ? 180.0f : 12.0f);
+      }
+      ++seen;
+      theta[c] = theta[d] = t;
+      listed.push_back(t);
+    }
+    for (double threshold : thresholds)
+      for (double exclude : excludes) {
+        int64_t edges = 0, above = 0, hist[18] = {0};
+        __extension__ __int128 units = 0;
+        float max = 0;
+        for (float t : listed) {
+          if (std::isnan(t) || (exclude > 0 && double(t) >= exclude)) continue;
+          ++edges;
+          units += static_cast<int64_t>(double(t) * 1099511627776.0);
+          max = std::max(max, t);
+          above += double(t) > threshold;
+          hist[std::min(17, int(t / 10.0f))]++;
+        }
+        for (int threads : {1, 2}) {
+          const AngleSummary s = summarize_angles(m, ct, &theta, threshold, exclude, threads);
+          const std::string at = "threshold " + std::to_string(threshold) + " exclude " + std::to_string(exclude) +
+                                 " dropped " + std::to_string(dropped) + " threads " + std::to_string(threads);
+          EXPECT_EQ(s.edges, edges) << at;
+          EXPECT_EQ(s.above, above) << at;
+          EXPECT_EQ(s.max, double(max)) << at;
+          EXPECT_EQ(s.mean, edges ? double(units) / 1099511627776.0 / double(edges) : 0.0) << at;
+          for (int k = 0; k < 18; ++k) EXPECT_EQ(s.histogram[size_t(k)], hist[k]) << at << " bin " << k;
+        }
+      }
+  }
+}
+
 // The statistics gather counts, a maximum and an exact sum, so they do not
 // depend on how the faces are split over threads nor on the order of the
 // faces: the same mesh with its faces in reverse order (every edge is then
