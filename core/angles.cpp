@@ -410,6 +410,13 @@ struct AngleTally {
     above += t > threshold;
     hist[std::min(kBins - 1, std::max(0, int(t / 10.0f)))]++;
   }
+  void merge(const AngleTally& o) {
+    edges += o.edges;
+    above += o.above;
+    sum += o.sum;
+    max = std::max(max, o.max);
+    for (int k = 0; k < kBins; ++k) hist[k] += o.hist[k];
+  }
 };
 
 #if ITEAS_X86_FEATURES
@@ -532,7 +539,6 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   constexpr int64_t kFaces = 8192;
   const int64_t nf = nc / 3;
   std::mutex mutex;
-  AngleSummary total;
   AngleTally all;
 #if ITEAS_X86_FEATURES
   const bool wide = cpu_has(CpuFeature::kAvx2);
@@ -626,12 +632,9 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       flush();
     }
     std::lock_guard<std::mutex> lock(mutex);
-    all.edges += tally.edges;
-    all.above += tally.above;
-    all.sum += tally.sum;
-    all.max = std::max(all.max, tally.max);
-    for (int k = 0; k < AngleTally::kBins; ++k) all.hist[k] += tally.hist[k];
+    all.merge(tally);
   }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
+  AngleSummary total;
   total.edges = all.edges;
   total.above = all.above;
   total.max = double(all.max);
