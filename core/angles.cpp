@@ -274,12 +274,6 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
-  // The angle carried for corner c, or -1 when there is none (an angle is
-  // never negative; a carried NaN is a zero-area face's).
-  auto carried_at = [&](int32_t c) -> float {
-    const int64_t from = carried.theta ? carried.source(cv, c) : -1;
-    return from < 0 ? -1.0f : carried.theta[from];
-  };
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     // Written before read: slot per face of the chunk (-1: not listed), the
     // faces listed (the chunk's own at most once, a later chunk's once per
@@ -318,30 +312,54 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
         }
       } else {
         std::fill(sl, sl + (f1 - f0), -1);
-        for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-          const int32_t d = opp[c];
-          if (d < c) continue;  // boundary (-1), or done at the smaller corner
-          const float t = carried_at(c);
-          if (!(t < 0.0f)) {
-            theta[c] = theta[d] = t;
-            continue;
+        // Carried first (after the first levels nearly every edge is), and
+        // stored without a branch on whether the corner is its edge's first
+        // (which follows no pattern). CarriedAngles::source a face at a time:
+        // corner k's edge joins the face's other two vertices, carried when
+        // the face is kept and neither is touched.
+        const int32_t* kept = carried.kept_from;
+        const uint8_t* touched = carried.touched;
+        const float* old = carried.theta;
+        float* th = theta.data();
+        float spare[2];  // where a carried corner that is not its edge's first writes
+        for (int32_t f = int32_t(f0); f < int32_t(f1); ++f) {
+          const int64_t from = kept[f];
+          bool untouched[3] = {false, false, false};
+          if (from >= 0) {
+            const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
+            untouched[0] = !(t1 | t2);
+            untouched[1] = !(t2 | t0);
+            untouched[2] = !(t0 | t1);
           }
-          int32_t& s1 = sl[c / 3 - f0];
-          if (s1 < 0) { s1 = nl; fl[nl++] = c / 3; }
-          const int32_t g = d / 3;
-          int32_t s2;
-          if (g >= f1) {  // a later chunk's face
-            s2 = nl;
-            fl[nl++] = g;
-          } else {
-            int32_t& s = sl[g - f0];
-            if (s < 0) { s = nl; fl[nl++] = g; }
-            s2 = s;
+          for (int k = 0; k < 3; ++k) {
+            const int32_t c = 3 * f + k, d = opp[c];
+            const bool first = d > c;  // else a boundary (-1), or done at the smaller corner
+            // The angle carried for c, or -1 when there is none (an angle is
+            // never negative; a carried NaN is a zero-area face's).
+            const float t = untouched[k] ? old[3 * from + k] : -1.0f;
+            if (!(t < 0.0f)) {
+              *(first ? th + c : spare) = t;
+              *(first ? th + d : spare + 1) = t;
+              continue;
+            }
+            if (!first) continue;
+            int32_t& s1 = sl[f - f0];
+            if (s1 < 0) { s1 = nl; fl[nl++] = f; }
+            const int32_t g = d / 3;
+            int32_t s2;
+            if (g >= f1) {  // a later chunk's face
+              s2 = nl;
+              fl[nl++] = g;
+            } else {
+              int32_t& s = sl[g - f0];
+              if (s < 0) { s = nl; fl[nl++] = g; }
+              s2 = s;
+            }
+            el[3 * ne] = c;
+            el[3 * ne + 1] = s1;
+            el[3 * ne + 2] = s2;
+            ++ne;
           }
-          el[3 * ne] = c;
-          el[3 * ne + 1] = s1;
-          el[3 * ne + 2] = s2;
-          ++ne;
         }
       }
       // The normals, a block of faces at a time.

@@ -1022,13 +1022,23 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
     if (reuse) {
-      const CarriedAngles edges = carried.edges();  // the same test of a carried edge as the angles'
-      parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
-        for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
-          const int64_t from = edges.source(cv, c);
-          if (from >= 0) dev[c] = carried.deviation[from];
+      // CarriedAngles::source per corner, a face at a time: corner k's edge
+      // joins the face's other two vertices, carried when neither is touched
+      // (the face's three touched flags read once, not twice each).
+      const int32_t* from_face = carried.kept_from.data();
+      const uint8_t* touched = carried.touched.data();
+      const float* old = carried.deviation.data();
+      float* out = dev.data();
+      parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+        for (int64_t f = b; f < e; ++f) {
+          const int64_t from = from_face[f];
+          if (from < 0) continue;
+          const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
+          if (!(t1 | t2)) out[3 * f] = old[3 * from];
+          if (!(t2 | t0)) out[3 * f + 1] = old[3 * from + 1];
+          if (!(t0 | t1)) out[3 * f + 2] = old[3 * from + 2];
         }
-      }, 1536);
+      }, 512);
     }
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
       // A block of edges at a time: their Butterfly points in one call
@@ -1048,9 +1058,12 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         n = 0;
       };
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
+        // The carried test first: after the first levels nearly every edge
+        // is carried, and the test then costs no mispredicted branch (whether
+        // a corner is its edge's first follows no pattern).
         const int32_t oc = opp[c];
-        if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
         if (dev[c] >= 0.0f && (oc < 0 || dev[oc] >= 0.0f)) continue;  // carried (on both sides)
+        if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
         list[n] = c;
         if (++n == kBlock) flush();
       }
