@@ -530,19 +530,30 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   // renumbered in the same order: the opposites of the corners before its
   // corners, its corner and its fan follow. Every corner whose next is
   // untouched is therefore in a kept face.
+  // Per face, which of its corners' vertices are touched (bit k: corner k),
+  // the face's three flags read once for both uses.
   Array<int32_t> opposite(nc);
+  std::vector<uint8_t> touched_corners(nf);
   std::atomic<bool> consistent{true};
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+    const int32_t* fv = cv.data();
+    const uint8_t* tv = touched.data();
+    const int32_t* kept = kept_from.data();
+    const int32_t* old = opposite_.data();
+    const int32_t* to = moved.data();
+    int32_t* out = opposite.data();
+    uint8_t* mask = touched_corners.data();
     bool ok = true;
     for (int64_t f = b; f < e; ++f) {
-      const int32_t from = kept_from[f];
+      const bool t[3] = {tv[fv[3 * f]] != 0, tv[fv[3 * f + 1]] != 0, tv[fv[3 * f + 2]] != 0};
+      mask[f] = uint8_t(t[0] | t[1] << 1 | t[2] << 2);
+      const int32_t from = kept[f];
       for (int k = 0; k < 3; ++k) {
-        const int32_t c = int32_t(3 * f + k);
-        if (touched[cv[next_corner(c)]]) continue;
+        if (t[k == 2 ? 0 : k + 1]) continue;  // the corner's next vertex
         if (from < 0) { ok = false; continue; }
-        const int32_t o = opposite_[3 * from + k];
-        ok &= o < 0 || moved[o / 3] >= 0;
-        opposite[c] = ok ? remap(o) : -1;
+        const int32_t o = old[3 * from + k];
+        ok &= o < 0 || to[o / 3] >= 0;
+        out[3 * f + k] = ok ? (o < 0 ? -1 : 3 * to[o / 3] + o % 3) : -1;
       }
     }
     if (!ok) consistent.store(false, std::memory_order_relaxed);
@@ -562,8 +573,12 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   const int32_t runs = int32_t(vertex_of.size());
   // The touched vertices matched as build() matches every vertex.
   std::vector<int32_t> at;
-  for (int32_t c = 0; c < nc; ++c)
-    if (touched[cv[c]]) at.push_back(c);
+  for (int32_t f = 0; f < nf; ++f) {
+    const unsigned m = touched_corners[f];
+    if (m == 0) continue;
+    for (int k = 0; k < 3; ++k)
+      if (m >> k & 1) at.push_back(3 * f + k);
+  }
   VertexCorners vc;
   vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {

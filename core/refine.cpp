@@ -990,26 +990,46 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
   const bool stall = s.stall > 0 && !s.born.empty();
   std::vector<uint8_t> verdict(nf);
   std::atomic<bool> deviations{false};
-  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-    bool any = false;
-    for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
-      const float t = fmax[f];
-      uint8_t v = kLeft;
-      if (std::isnan(t)) {
-        // no bend to judge (no interior edge with a normal on both sides)
-      } else if (!(o.select == Select::kAbove ? t > T : t < T)) {
-        if (s.flat_limit > 0) v = kJudgeFlat;
-      } else if (stall && double(t) >= s.stall * double(s.born[f])) {
-        // Still bending as much as when its parent was split: Butterfly is
-        // not smoothing it (a fold, a cusp or the ripples around one).
-        v = kStalled;
-      } else {
-        v = s.tolerance > 0 ? kJudgeTolerance : kSelected;
-      }
-      verdict[f] = v;
-      any |= v >= kJudgeTolerance;
+  // A face's verdict from its largest θ, without branches (whether a face
+  // bends more than T follows no pattern):
+  //  * NaN: no bend to judge (no interior edge with a normal on both sides);
+  //  * not beyond T: judged against the flat limit when there is one;
+  //  * beyond T but still bending as much as when its parent was split:
+  //    stalled (Butterfly is not smoothing it: a fold, a cusp or the
+  //    ripples around one);
+  //  * else selected, or judged against the tolerance when there is one.
+  const bool above = o.select == Select::kAbove;
+  const uint8_t unbent = s.flat_limit > 0 ? kJudgeFlat : kLeft;
+  const uint8_t bent = s.tolerance > 0 ? kJudgeTolerance : kSelected;
+  const double ratio = s.stall;
+  auto judge = [&](auto stalls, int64_t b, int64_t e) {
+    // Locals: the byte stores may alias anything in memory, and what the
+    // loop read through its captures was reloaded after each of them.
+    const float* bend = fmax.data();
+    const float* born = stalls ? s.born.data() : nullptr;
+    uint8_t* out = verdict.data();
+    const bool up = above;
+    const double limit = T, r = ratio;
+    const uint8_t yes = bent, no = unbent;
+    uint8_t any = 0;
+    // In integer arithmetic on the comparisons: GCC made branches of the
+    // same selects written with ?: (kLeft is 0).
+    const int up_i = up;
+    for (int64_t f = b; f < e; ++f) {
+      const float t = bend[f];
+      const int beyond = (up_i & int(t > limit)) | ((1 - up_i) & int(t < limit));  // 0 for NaN
+      const int stalled = stalls ? int(double(t) >= r * double(born[f])) : 0;
+      const int bent_v = yes + (kStalled - yes) * stalled;
+      const int unbent_v = no * int(t == t);  // NaN: kLeft
+      const uint8_t v = uint8_t(unbent_v + (bent_v - unbent_v) * beyond);
+      out[f] = v;
+      any |= uint8_t(v >= kJudgeTolerance);
     }
     if (any) deviations.store(true, std::memory_order_relaxed);
+  };
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    if (stall) judge(std::true_type(), b, e);
+    else judge(std::false_type(), b, e);
   }, 512);
   if (deviations.load()) {
     // Each edge once (from its first corner), for the faces that need it.
@@ -1070,11 +1090,17 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
       flush();
     }, 1536);
     parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-      for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
-        if (verdict[f] < kJudgeTolerance) continue;
-        const double d = std::max({dev[3 * f], dev[3 * f + 1], dev[3 * f + 2]});
-        if (verdict[f] == kJudgeTolerance) verdict[f] = d <= s.tolerance ? kWithinTolerance : kSelected;
-        else verdict[f] = d > s.flat_limit ? kOverFlatLimit : kLeft;
+      const float* d3 = dev.data();
+      uint8_t* out = verdict.data();
+      const double tolerance = s.tolerance, flat_limit = s.flat_limit;  // locals, as in judge
+      for (int64_t f = b; f < e; ++f) {
+        const uint8_t v = out[f];
+        const double d = std::max({d3[3 * f], d3[3 * f + 1], d3[3 * f + 2]});
+        // Integer arithmetic, as in judge (kLeft is 0).
+        const int tol = v == kJudgeTolerance, flat = v == kJudgeFlat;
+        const int within = int(d <= tolerance), over = int(d > flat_limit);
+        const int judged = tol * (kSelected + (kWithinTolerance - kSelected) * within) + flat * kOverFlatLimit * over;
+        out[f] = uint8_t(v + ((tol | flat) * (judged - v)));
       }
     }, 512);
     carried.deviation.swap(dev);
@@ -1084,16 +1110,22 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
   s.carried.valid = false;  // until adaptive_level says how the next level derives from this one
   std::vector<int32_t>().swap(s.carried.kept_from);
   std::vector<uint8_t>().swap(s.carried.touched);
-  selected.clear();
+  // Counted and listed without branches (the verdicts follow no pattern).
+  int64_t stalled = 0, within = 0, over = 0, n = 0;
+  selected.resize(size_t(nf));
+  int32_t* list = selected.data();
+  const uint8_t* v = verdict.data();
   for (int32_t f = 0; f < nf; ++f) {
-    switch (verdict[f]) {
-      case kStalled: ++ls.faces_stalled; break;
-      case kWithinTolerance: ++ls.faces_within_tolerance; break;
-      case kOverFlatLimit: ++ls.faces_over_flat_limit; selected.push_back(f); break;
-      case kSelected: selected.push_back(f); break;
-      default: break;
-    }
+    stalled += v[f] == kStalled;
+    within += v[f] == kWithinTolerance;
+    over += v[f] == kOverFlatLimit;
+    list[n] = f;
+    n += (v[f] == kSelected) | (v[f] == kOverFlatLimit);
   }
+  selected.resize(size_t(n));
+  ls.faces_stalled += stalled;
+  ls.faces_within_tolerance += within;
+  ls.faces_over_flat_limit += over;
 }
 
 // Uniform levels add a vertex per edge, and the count of edges follows from
