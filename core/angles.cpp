@@ -599,11 +599,14 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     for (int64_t f0 = b; f0 < e; f0 += kFaces) {
       const int64_t f1 = std::min(e, f0 + kFaces);
       if (theta) {
+        // Each edge at its smaller corner (not at a boundary's -1), listed
+        // without a branch: which corner is an edge's first follows no pattern.
+        const float* th = theta->data();
         int n = 0;
         for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-          if (opp[c] <= c) continue;  // boundary (-1) or counted at the smaller corner
-          ts[n] = (*theta)[c];
-          if (++n == kBlock) {
+          ts[n] = th[c];
+          n += opp[c] > c;
+          if (n == kBlock) {
             count(ts, n);
             n = 0;
           }

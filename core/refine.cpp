@@ -677,6 +677,21 @@ struct Emitter {
     bool in_red = false;
   } born;
 
+  // Faces [f, e) of the old level, none of them split or green, copied
+  // unchanged: what face() makes of each with kept_from = f and born =
+  // |kept_born| (per face; null: INFINITY), in bulk (late levels keep
+  // nearly every face).
+  void copy(int32_t f, int32_t e, const float* kept_born) {
+    for (int32_t h = f; h < e; ++h) from.push_back(h);
+    if (born.on) {
+      if (kept_born) born.values.insert(born.values.end(), kept_born + f, kept_born + e);
+      else born.values.insert(born.values.end(), size_t(e - f), INFINITY);
+    }
+    cv.insert(cv.end(), m.corner_vertex.begin() + 3 * size_t(f), m.corner_vertex.begin() + 3 * size_t(e));
+    if (wedges) cw.insert(cw.end(), m.corner_wedge.begin() + 3 * size_t(f), m.corner_wedge.begin() + 3 * size_t(e));
+    if (groups) fg.insert(fg.end(), m.face_group.begin() + f, m.face_group.begin() + e);
+    green.insert(green.end(), size_t(e - f), uint8_t(0));
+  }
   void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag, int32_t kept_from = -1) {
     from.push_back(kept_from);
     if (born.on) born.values.push_back(born.in_red ? born.red : born.kept);
@@ -785,7 +800,19 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   if (em.born.on) em.born.values.reserve(plan.triangles);
   auto bend = [&](int32_t f) { return std::isnan(fmax[f]) ? INFINITY : fmax[f]; };
   const int32_t none[3] = {-1, -1, -1};
+  const float* kept_born = s.born.empty() ? nullptr : s.born.data();
   for (int32_t f = 0; f < nf; ++f) {
+    // A run of faces neither green nor split: copied as they are.
+    int32_t e = f;
+    // (Split edges have vertex numbers >= 0, the others -1: all three are
+    // -1 when their bitwise and is negative.)
+    while (e < nf && s.green[e] == 0 && (evert[3 * size_t(e)] & evert[3 * size_t(e) + 1] & evert[3 * size_t(e) + 2]) < 0)
+      ++e;
+    if (e > f) {
+      em.copy(f, e, kept_born);
+      f = e - 1;
+      continue;
+    }
     const uint8_t gflag = s.green[f];
     if (gflag == 2) continue;
     const int32_t g = m.group_of(f);
