@@ -545,15 +545,21 @@ bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint
 // edge midpoint) halved, round after round (1, 1/2, 1/4, 1/8, then 0: the
 // midpoint, where a 1 -> 4 split reproduces its parent's shape). Rounds see the
 // whole level at once, so the result does not depend on any order or on the
-// thread count. Returns how many new vertices were moved.
+// thread count. Returns how many new vertices were moved. |kept_from|: per
+// face of the new level, the old face it copies unchanged or -1 (Emitter::from).
 int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, const std::vector<int32_t>& edges,
-                      int32_t nv) {
+                      int32_t nv, const std::vector<int32_t>& kept_from) {
   const int64_t ne = int64_t(edges.size());
   // Butterfly points of the vertices moved so far (few): memory stays at two
   // bytes per new vertex however large the level.
   std::unordered_map<int64_t, std::array<float, 3>> butterfly;
   std::vector<uint8_t> step(ne, 0), mark(ne), moved(ne, 0);
+  // Only faces the level made can have a new vertex (a kept face has its
+  // old ones, a kept green pair too): listed once, in face order.
+  std::vector<int32_t> made;
   const int32_t nf = m.num_faces();
+  for (int32_t f = 0; f < nf; ++f)
+    if (kept_from[f] < 0) made.push_back(f);
   // Each round moves every marked vertex one step; a vertex stops at the
   // midpoint, so rounds end when no poor face has a vertex left to move.
   // After the first round only faces with a vertex the last round moved can
@@ -561,7 +567,7 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
   for (int round = 0; round < 8 * kGuardSteps; ++round) {
     std::fill(mark.begin(), mark.end(), 0);
     bool any = false;
-    for (int32_t f = 0; f < nf; ++f) {
+    for (const int32_t f : made) {
       // A new triangle, or a green pair with a new vertex whose later merge
       // would be poor (a pair born inside a merged pair's split was never
       // checked by the closure: its parent is itself new).
@@ -879,7 +885,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   // The old table is build(old, false)'s unless the input's split vertices.
   const bool renumber = s.incremental_table && !s.input_split;
   s.input_split = false;
-  if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv);
+  if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv, carried.kept_from);
   ls.vertices_added = next_v - nv;
   // Only the corners round changed faces are matched again; the rest of the
   // table is renumbered (the same table as a full build, which a test checks).
@@ -968,18 +974,28 @@ void orthogonalise_tangents(Mesh& m) {
 }
 
 // Largest theta of each face over its non-sharp edges; NaN when none.
+// On all threads, with selects instead of branches (which edges count
+// follows no pattern).
 void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
   const int32_t nf = m.num_faces();
-  out.assign(nf, std::numeric_limits<float>::quiet_NaN());
-  for (int32_t f = 0; f < nf; ++f) {
-    float best = std::numeric_limits<float>::quiet_NaN();
-    for (int k = 0; k < 3; ++k) {
-      const float t = s.theta[3 * f + k];
-      if (std::isnan(t) || s.sharp[3 * f + k]) continue;
-      if (std::isnan(best) || t > best) best = t;
+  out.resize(size_t(nf));
+  parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+    const float* theta = s.theta.data();
+    const uint8_t* sharp = s.sharp.data();
+    float* o = out.data();
+    // An edge's θ is >= 0 or NaN: -1 stands for an edge that does not count.
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (int64_t f = b; f < e; ++f) {
+      float t[3];
+      for (int k = 0; k < 3; ++k) {
+        const float x = theta[3 * f + k];
+        t[k] = x == x && !sharp[3 * f + k] ? x : -1.0f;
+      }
+      const float a = t[0] > t[1] ? t[0] : t[1];
+      const float best = a > t[2] ? a : t[2];
+      o[f] = best < 0.0f ? nan : best;
     }
-    out[f] = best;
-  }
+  }, 4096);
 }
 
 // How far splitting the edge at corner c would move the surface: the
