@@ -98,6 +98,7 @@ struct State {
   // Uniform levels: rings of the extraordinary vertices, all of which are
   // input vertices (index below ring_limit).
   RingTable rings;
+  const std::vector<uint8_t> no_flags;  // empty: no sharp flags, no green pairs (ButterflyContext)
   int32_t ring_limit = 0;
   int threads = 1;
   int64_t peak = 0;
@@ -226,6 +227,12 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   else std::vector<uint8_t>().swap(s.sharp);
   classify_vertices(m, s.ct, s.sharp, s.bctx.vclass, s.threads, boundary_only);
   if (!s.green.empty()) discount_green_apices(m, s.green, s.bctx.vclass);
+  // The Butterfly rules read "the sharp edges are the boundary" and "no
+  // green pair" from empty arrays, and then take their fast path (the plain
+  // stencils without those checks): an adaptive level's first, and any
+  // without creases, gets it where the flags would say nothing more.
+  if (boundary_only) s.bctx.sharp = &s.no_flags;
+  if (std::none_of(s.green.begin(), s.green.end(), [](uint8_t g) { return g != 0; })) s.bctx.green = &s.no_flags;
 }
 
 // ---------------------------------------------------------------------------
