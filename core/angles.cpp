@@ -314,9 +314,10 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
         std::fill(sl, sl + (f1 - f0), -1);
         // Carried first (after the first levels nearly every edge is), and
         // stored without a branch on whether the corner is its edge's first
-        // (which follows no pattern). CarriedAngles::source a face at a time:
-        // corner k's edge joins the face's other two vertices, carried when
-        // the face is kept and neither is touched.
+        // (which follows no pattern). CarriedAngles' rule a face at a time
+        // (its three touched flags read once): corner k's edge joins the
+        // face's other two vertices, carried when the face is kept and
+        // neither is touched.
         const int32_t* kept = carried.kept_from;
         const uint8_t* touched = carried.touched;
         const float* old = carried.theta;

@@ -29,17 +29,11 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
 // k of face f with kept_from[f] >= 0 and neither end touched has the angle
 // theta[3 * kept_from[f] + k] had. (Both faces of such an edge are then kept
 // unchanged, their normals the same bits, in the same order.)
+// refine's deviations are carried by the same rule.
 struct CarriedAngles {
   const float* theta = nullptr;
   const int32_t* kept_from = nullptr;
   const uint8_t* touched = nullptr;
-  // Corner c's corner on the level before when its edge is carried, else -1
-  // (cv: the current corner -> vertex map). Also what refine's deviations use.
-  int64_t source(const int32_t* cv, int32_t c) const {
-    const int32_t from = kept_from[c / 3];
-    if (from < 0 || (touched[cv[next_corner(c)]] | touched[cv[prev_corner(c)]])) return -1;
-    return 3 * int64_t(from) + c % 3;
-  }
 };
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
                  const CarriedAngles& carried);

@@ -1048,27 +1048,23 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
   //    stalled (Butterfly is not smoothing it: a fold, a cusp or the
   //    ripples around one);
   //  * else selected, or judged against the tolerance when there is one.
-  const bool above = o.select == Select::kAbove;
-  const uint8_t unbent = s.flat_limit > 0 ? kJudgeFlat : kLeft;
-  const uint8_t bent = s.tolerance > 0 ? kJudgeTolerance : kSelected;
-  const double ratio = s.stall;
   auto judge = [&](auto stalls, int64_t b, int64_t e) {
     // Locals: the byte stores may alias anything in memory, and what the
     // loop read through its captures was reloaded after each of them.
     const float* bend = fmax.data();
     const float* born = stalls ? s.born.data() : nullptr;
     uint8_t* out = verdict.data();
-    const bool up = above;
-    const double limit = T, r = ratio;
-    const uint8_t yes = bent, no = unbent;
+    const int up = o.select == Select::kAbove;
+    const double limit = T, ratio = s.stall;
+    const int yes = s.tolerance > 0 ? kJudgeTolerance : kSelected;  // beyond T
+    const int no = s.flat_limit > 0 ? kJudgeFlat : kLeft;            // not beyond T
     uint8_t any = 0;
     // In integer arithmetic on the comparisons: GCC made branches of the
     // same selects written with ?: (kLeft is 0).
-    const int up_i = up;
     for (int64_t f = b; f < e; ++f) {
       const float t = bend[f];
-      const int beyond = (up_i & int(t > limit)) | ((1 - up_i) & int(t < limit));  // 0 for NaN
-      const int stalled = stalls ? int(double(t) >= r * double(born[f])) : 0;
+      const int beyond = (up & int(t > limit)) | ((1 - up) & int(t < limit));  // 0 for NaN
+      const int stalled = stalls ? int(double(t) >= ratio * double(born[f])) : 0;
       const int bent_v = yes + (kStalled - yes) * stalled;
       const int unbent_v = no * int(t == t);  // NaN: kLeft
       const uint8_t v = uint8_t(unbent_v + (bent_v - unbent_v) * beyond);
@@ -1092,9 +1088,9 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
     if (reuse) {
-      // CarriedAngles::source per corner, a face at a time: corner k's edge
-      // joins the face's other two vertices, carried when neither is touched
-      // (the face's three touched flags read once, not twice each).
+      // CarriedAngles' rule a face at a time (its three touched flags read
+      // once, not twice per corner): corner k's edge joins the face's other
+      // two vertices, carried when the face is kept and neither is touched.
       const int32_t* from_face = carried.kept_from.data();
       const uint8_t* touched = carried.touched.data();
       const float* old = carried.deviation.data();
