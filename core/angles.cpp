@@ -312,17 +312,17 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
         }
       } else {
         std::fill(sl, sl + (f1 - f0), -1);
-        // Carried first (after the first levels nearly every edge is), and
-        // stored without a branch on whether the corner is its edge's first
-        // (which follows no pattern). CarriedAngles' rule a face at a time
-        // (its three touched flags read once): corner k's edge joins the
-        // face's other two vertices, carried when the face is kept and
-        // neither is touched.
+        // Carried first (after the first levels nearly every edge is), each
+        // corner from its own face: both corners of a carried edge are
+        // carried, with the same angle (see CarriedAngles), so no corner
+        // waits for its edge's first and no store goes elsewhere.
+        // CarriedAngles' rule a face at a time (its three touched flags read
+        // once): corner k's edge joins the face's other two vertices, carried
+        // when the face is kept and neither is touched.
         const int32_t* kept = carried.kept_from;
         const uint8_t* touched = carried.touched;
         const float* old = carried.theta;
         float* th = theta.data();
-        float spare[2];  // where a carried corner that is not its edge's first writes
         for (int32_t f = int32_t(f0); f < int32_t(f1); ++f) {
           const int64_t from = kept[f];
           bool untouched[3] = {false, false, false};
@@ -339,8 +339,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
             // never negative; a carried NaN is a zero-area face's).
             const float t = untouched[k] ? old[3 * from + k] : -1.0f;
             if (!(t < 0.0f)) {
-              *(first ? th + c : spare) = t;
-              *(first ? th + d : spare + 1) = t;
+              th[c] = t;
               continue;
             }
             if (!first) continue;

@@ -28,7 +28,9 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
 // (all per the mesh given, as refine's adaptive levels record them): corner
 // k of face f with kept_from[f] >= 0 and neither end touched has the angle
 // theta[3 * kept_from[f] + k] had. (Both faces of such an edge are then kept
-// unchanged, their normals the same bits, in the same order.)
+// unchanged, their normals the same bits, in the same order: a face that
+// changed touches all its vertices. So both corners of a carried edge are
+// carried, each from its own face, with the angle both had.)
 // refine's deviations are carried by the same rule.
 struct CarriedAngles {
   const float* theta = nullptr;
