@@ -1126,9 +1126,11 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         // The carried test first: after the first levels nearly every edge
         // is carried, and the test then costs no mispredicted branch (whether
-        // a corner is its edge's first follows no pattern).
+        // a corner is its edge's first follows no pattern). Both corners of
+        // a carried edge are carried, with the same deviation (CarriedAngles),
+        // so the corner's own tells.
+        if (dev[c] >= 0.0f) continue;
         const int32_t oc = opp[c];
-        if (dev[c] >= 0.0f && (oc < 0 || dev[oc] >= 0.0f)) continue;  // carried (on both sides)
         if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
         list[n] = c;
         if (++n == kBlock) flush();
