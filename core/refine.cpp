@@ -758,7 +758,9 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   const Array<int32_t>& opp = s.ct.opposites();
 
   // Topology: number the split edges and their wedges in corner order.
-  std::vector<int32_t> evert(nc, -1), ewedge(nc, -1), edges;
+  // (No wedge numbers where the mesh has no wedges: every vertex is its own.)
+  std::vector<int32_t> evert(nc, -1), ewedge(wedges ? nc : 0, -1), edges;
+  auto wedge_at = [&](int64_t c) { return wedges ? ewedge[c] : -1; };
   int32_t next_v = nv, next_w = m.wedge_count();
   std::vector<std::pair<int32_t, int32_t>> wedge_src;  // (a, b) per new wedge
   for (int32_t c = 0; c < nc; ++c) {
@@ -853,13 +855,13 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
       const int32_t a = m.corner_vertex[3 * f], bb = m.corner_vertex[3 * f2 + 1], c = m.corner_vertex[3 * f + 2];
       const int32_t wa = m.wedge_of(3 * f), wb = m.wedge_of(3 * f2 + 1), wc = m.wedge_of(3 * f + 2);
       const int32_t m2 = m.corner_vertex[3 * f + 1], w2 = m.wedge_of(3 * f + 1);
-      const int32_t m0 = evert[3 * f2 + 0], w0 = ewedge[3 * f2 + 0];
-      const int32_t m1 = evert[3 * f + 1], w1 = ewedge[3 * f + 1];
+      const int32_t m0 = evert[3 * f2 + 0], w0 = wedge_at(3 * f2 + 0);
+      const int32_t m1 = evert[3 * f + 1], w1 = wedge_at(3 * f + 1);
       // Children of the regular split; the halves (a, m) and (m, b) may split.
       const int32_t F0v[3] = {a, m2, m1}, F0w[3] = {wa, w2, w1};
-      const int32_t F0m[3] = {-1, -1, evert[3 * f + 2]}, F0mw[3] = {-1, -1, ewedge[3 * f + 2]};
+      const int32_t F0m[3] = {-1, -1, evert[3 * f + 2]}, F0mw[3] = {-1, -1, wedge_at(3 * f + 2)};
       const int32_t F1v[3] = {m2, bb, m0}, F1w[3] = {w2, wb, w0};
-      const int32_t F1m[3] = {-1, -1, evert[3 * f2 + 2]}, F1mw[3] = {-1, -1, ewedge[3 * f2 + 2]};
+      const int32_t F1m[3] = {-1, -1, evert[3 * f2 + 2]}, F1mw[3] = {-1, -1, wedge_at(3 * f2 + 2)};
       const int32_t F2v[3] = {m1, m0, c}, F2w[3] = {w1, w0, wc};
       const int32_t F3v[3] = {m0, m1, m2}, F3w[3] = {w0, w1, w2};
       em.split(F0v, F0w, F0m, F0mw, g);
