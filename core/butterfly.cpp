@@ -19,8 +19,17 @@ bool mark_sharp_edges(const CornerTable& ct, const Array<float>* theta, double c
   const int32_t nc = ct.num_corners();
   sharp.resize(nc);
   parallel_for(nc, threads, [&](int64_t b, int64_t e) {
-    for (int64_t c = b; c < e; ++c)
-      sharp[c] = ct.opposite(int32_t(c)) < 0 || (creases && (*theta)[c] >= crease_angle);
+    // Locals, and a loop per case: the byte stores may alias anything, and
+    // the arrays' pointers were reloaded after each of them (no vectorising).
+    const int32_t* opp = ct.opposites().data();
+    uint8_t* out = sharp.data();
+    if (creases) {
+      const float* t = theta->data();
+      const double limit = crease_angle;
+      for (int64_t c = b; c < e; ++c) out[c] = uint8_t(int(opp[c] < 0) | int(t[c] >= limit));
+    } else {
+      for (int64_t c = b; c < e; ++c) out[c] = uint8_t(opp[c] < 0);
+    }
   });
   return !creases;
 }
