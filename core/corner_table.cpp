@@ -572,13 +572,25 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   }
   const int32_t runs = int32_t(vertex_of.size());
   // The touched vertices matched as build() matches every vertex.
-  std::vector<int32_t> at;
-  for (int32_t f = 0; f < nf; ++f) {
-    const unsigned m = touched_corners[f];
-    if (m == 0) continue;
-    for (int k = 0; k < 3; ++k)
-      if (m >> k & 1) at.push_back(3 * f + k);
+  // Counted first, then listed without branches (on a level that changed
+  // much, whether a corner is touched follows no pattern).
+  int64_t touched_count = 0;
+  for (int32_t f = 0; f < nf; ++f) touched_count += kBits[touched_corners[f]];
+  std::vector<int32_t> at(size_t(touched_count) + 3);  // 3 spare: each face writes all three
+  {
+    int32_t* list = at.data();
+    const uint8_t* mask = touched_corners.data();
+    int64_t n = 0;
+    for (int32_t f = 0; f < nf; ++f) {
+      const unsigned m = mask[f];
+      if (m == 0) continue;  // after the first levels nearly every face
+      for (int k = 0; k < 3; ++k) {
+        list[n] = 3 * f + k;
+        n += m >> k & 1;
+      }
+    }
   }
+  at.resize(size_t(touched_count));
   VertexCorners vc;
   vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {
