@@ -316,28 +316,17 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
         // corner from its own face: both corners of a carried edge are
         // carried, with the same angle (see CarriedAngles), so no corner
         // waits for its edge's first and no store goes elsewhere.
-        // CarriedAngles' rule a face at a time (its three touched flags read
-        // once): corner k's edge joins the face's other two vertices, carried
-        // when the face is kept and neither is touched.
-        const int32_t* kept = carried.kept_from;
-        const uint8_t* touched = carried.touched;
         const float* old = carried.theta;
         float* th = theta.data();
         for (int32_t f = int32_t(f0); f < int32_t(f1); ++f) {
-          const int64_t from = kept[f];
-          bool untouched[3] = {false, false, false};
-          if (from >= 0) {
-            const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
-            untouched[0] = !(t1 | t2);
-            untouched[1] = !(t2 | t0);
-            untouched[2] = !(t0 | t1);
-          }
+          bool kept[3];
+          const int64_t from = carried.carried_corners(cv, f, kept);
           for (int k = 0; k < 3; ++k) {
             const int32_t c = 3 * f + k, d = opp[c];
             const bool first = d > c;  // else a boundary (-1), or done at the smaller corner
             // The angle carried for c, or -1 when there is none (an angle is
             // never negative; a carried NaN is a zero-area face's).
-            const float t = untouched[k] ? old[3 * from + k] : -1.0f;
+            const float t = kept[k] ? old[3 * from + k] : -1.0f;
             if (!(t < 0.0f)) {
               th[c] = t;
               continue;

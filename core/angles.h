@@ -36,6 +36,20 @@ struct CarriedAngles {
   const float* theta = nullptr;
   const int32_t* kept_from = nullptr;
   const uint8_t* touched = nullptr;
+  // The rule for face f of the current mesh (cv: its corner -> vertex map):
+  // its face on the level before, or -1 when it changed; carried[k] tells
+  // whether corner k's edge (between the face's other two vertices) is
+  // carried. The face's three touched flags are read once.
+  int64_t carried_corners(const int32_t* cv, int64_t f, bool carried[3]) const {
+    const int64_t from = kept_from[f];
+    carried[0] = carried[1] = carried[2] = false;
+    if (from < 0) return -1;
+    const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
+    carried[0] = !(t1 | t2);
+    carried[1] = !(t2 | t0);
+    carried[2] = !(t0 | t1);
+    return from;
+  }
 };
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
                  const CarriedAngles& carried);

@@ -540,7 +540,6 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
     const uint8_t* tv = touched.data();
     const int32_t* kept = kept_from.data();
     const int32_t* old = opposite_.data();
-    const int32_t* to = moved.data();
     int32_t* out = opposite.data();
     uint8_t* mask = touched_corners.data();
     bool ok = true;
@@ -552,8 +551,8 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
         if (t[k == 2 ? 0 : k + 1]) continue;  // the corner's next vertex
         if (from < 0) { ok = false; continue; }
         const int32_t o = old[3 * from + k];
-        ok &= o < 0 || to[o / 3] >= 0;
-        out[3 * f + k] = ok ? (o < 0 ? -1 : 3 * to[o / 3] + o % 3) : -1;
+        ok &= o < 0 || moved[o / 3] >= 0;
+        out[3 * f + k] = ok ? remap(o) : -1;
       }
     }
     if (!ok) consistent.store(false, std::memory_order_relaxed);

@@ -1090,21 +1090,16 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
     if (reuse) {
-      // CarriedAngles' rule a face at a time (its three touched flags read
-      // once, not twice per corner): corner k's edge joins the face's other
-      // two vertices, carried when the face is kept and neither is touched.
-      const int32_t* from_face = carried.kept_from.data();
-      const uint8_t* touched = carried.touched.data();
+      // The angles' rule (CarriedAngles), a face at a time.
+      const CarriedAngles edges = carried.edges();
       const float* old = carried.deviation.data();
       float* out = dev.data();
       parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
         for (int64_t f = b; f < e; ++f) {
-          const int64_t from = from_face[f];
-          if (from < 0) continue;
-          const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
-          if (!(t1 | t2)) out[3 * f] = old[3 * from];
-          if (!(t2 | t0)) out[3 * f + 1] = old[3 * from + 1];
-          if (!(t0 | t1)) out[3 * f + 2] = old[3 * from + 2];
+          bool kept[3];
+          const int64_t from = edges.carried_corners(cv, f, kept);
+          for (int k = 0; k < 3; ++k)
+            if (kept[k]) out[3 * f + k] = old[3 * from + k];
         }
       }, 512);
     }
