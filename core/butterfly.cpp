@@ -1,5 +1,7 @@
 #include "core/butterfly.h"
 
+#include <atomic>
+
 #include <algorithm>
 #include <cmath>
 #include <type_traits>
@@ -89,20 +91,33 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
         out.neighbour[i] = x >= 0 ? cv[next_corner(x)] : -1;
       }
     });
+    Array<int32_t>().swap(out.slot);  // later levels: the rings cover few corners
     ring_points(mesh, vclass, out, threads, wide_sums);
     return;
   }
+  // Every vertex with a class below the limit (the new vertices of a level
+  // have none yet).
+  const bool all_vertices = int64_t(vclass.complete.size()) <= int64_t(limit);
   limit = std::min(limit, mesh.num_vertices());
   out.offset.assign(size_t(std::max(limit, 0)), -1);
   int64_t total = 0;
+  bool unringed = false;  // a complete extraordinary vertex without a ring
   for (int32_t v = 0; v < limit; ++v) {
     const int32_t k = vclass.valence[v];
-    if (!vclass.complete[v] || k == 6 || k < 3 || ct.vertex_corner(v) < 0) continue;
+    if (!vclass.complete[v] || k == 6 || k < 3) continue;
+    if (ct.vertex_corner(v) < 0) { unringed = true; continue; }
     out.offset[v] = int32_t(total);
     total += k;
   }
   out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
+  // Slots where the rings cover at least half the corners: written with the
+  // rings, each corner at most once (a corner is at one vertex).
+  const int64_t nc = int64_t(mesh.corner_vertex.size());
+  if (all_vertices && !unringed && 2 * total >= nc) out.slot.assign(size_t(nc), -1);
+  else Array<int32_t>().swap(out.slot);
+  int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
+  std::atomic<bool> broken{false};
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = out.offset[v];
@@ -113,18 +128,25 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
         for (int32_t j = 0; j < k; ++j) {
           out.corner[off + j] = order[j];
           out.neighbour[off + j] = cv[next_corner(order[j])];
+          if (slot) slot[order[j]] = off + j;
         }
         continue;
       }
       int32_t x = ct.vertex_corner(int32_t(v));
       for (int32_t j = 0; j < k; ++j) {
-        if (x < 0) { out.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
+        if (x < 0) {  // defensive: not a closed fan of k faces
+          out.offset[v] = -1;
+          broken.store(true, std::memory_order_relaxed);
+          break;
+        }
         out.corner[off + j] = x;
         out.neighbour[off + j] = cv[next_corner(x)];
+        if (slot) slot[x] = off + j;
         x = ct.swing_right(x);
       }
     }
   }, 512);
+  if (broken.load()) Array<int32_t>().swap(out.slot);  // a dropped ring's corners may have slots
   ring_points(mesh, vclass, out, threads, wide_sums);
 }
 
@@ -180,6 +202,7 @@ struct View {
   const int32_t* ring_corner;
   const int32_t* ring_neighbour;
   const float* ring_point;
+  const int32_t* ring_slot;  // null without slots
   explicit View(const ButterflyContext& ctx)
       : ct(ctx.ct),
         cv(ctx.mesh->corner_vertex.data()),
@@ -193,7 +216,8 @@ struct View {
         ring_offset(ring_limit ? ctx.rings->offset.data() : nullptr),
         ring_corner(ring_limit ? ctx.rings->corner.data() : nullptr),
         ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr),
-        ring_point(ring_limit ? ctx.rings->point.data() : nullptr) {}
+        ring_point(ring_limit ? ctx.rings->point.data() : nullptr),
+        ring_slot(ring_limit && !ctx.rings->slot.empty() ? ctx.rings->slot.data() : nullptr) {}
   uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
   // No sharp flags (an empty array) means: sharp = boundary.
   bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }
@@ -735,6 +759,17 @@ struct SseSum {
   ITEAS_INLINE void operator()(const float* positions, const int32_t* q, float* out) const {
     regular_sum(positions, q, out);
   }
+  // An edge with an extraordinary end, from the rings' points: entry a
+  // alone, or the average of a and b (|both|), summed as rules() sums them
+  // (0, then each rule scaled: 1, or 1/2 and 1/2).
+  ITEAS_INLINE void ring(const float* point, int32_t a, int32_t b, bool both, float* out) const {
+    const float *ra = point + 3 * size_t(a), *rb = point + 3 * size_t(b);
+    for (int k = 0; k < 3; ++k) {
+      double p = 0.0 + (both ? 0.5 : 1.0) * double(ra[k]);
+      if (both) p += 0.5 * double(rb[k]);
+      out[k] = float(p);
+    }
+  }
 };
 
 #if ITEAS_AVX_SUM
@@ -761,6 +796,22 @@ struct AvxSum {
     _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(rf));
     _mm_store_ss(out + 2, _mm_movehl_ps(rf, rf));
   }
+  // SseSum::ring with x, y and z in one register, both sums made and one
+  // kept (no branch: whether an edge has one extraordinary end or two
+  // follows no pattern).
+  __attribute__((target("avx"))) inline void ring(const float* point, int32_t a, int32_t b, bool both,
+                                                  float* out) const {
+    const __m128i three = _mm_set_epi32(0, -1, -1, -1);
+    const __m256d pa = _mm256_cvtps_pd(_mm_maskload_ps(point + 3 * size_t(a), three));
+    const __m256d pb = _mm256_cvtps_pd(_mm_maskload_ps(point + 3 * size_t(b), three));
+    const __m256d zero = _mm256_setzero_pd(), half = _mm256_set1_pd(0.5);
+    const __m256d one = _mm256_add_pd(zero, _mm256_mul_pd(_mm256_set1_pd(1.0), pa));
+    const __m256d two = _mm256_add_pd(_mm256_add_pd(zero, _mm256_mul_pd(half, pa)), _mm256_mul_pd(half, pb));
+    const __m256d keep = _mm256_castsi256_pd(_mm256_set1_epi64x(-int64_t(both)));
+    const __m128 rf = _mm256_cvtpd_ps(_mm256_blendv_pd(one, two, keep));
+    _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(rf));
+    _mm_store_ss(out + 2, _mm_movehl_ps(rf, rf));
+  }
 };
 #endif
 
@@ -774,6 +825,8 @@ ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t
   const int32_t* const cv = view.cv;
   const int32_t* const opp = view.opp;
   const uint8_t* const complete = view.complete;
+  const int32_t* const slot = kPlain ? view.ring_slot : nullptr;
+  const float* const ring_point = view.ring_point;
   // The faces across a few edges ahead are asked for early: an edge's
   // wings are read through its opposite (corner, opposite, its neighbours,
   // their vertices, one load waiting on the other), and on large levels
@@ -790,6 +843,21 @@ ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t
     }
     const int32_t c = corners[i];
     if (kPlain) {
+      if (slot) {
+        // With every complete extraordinary vertex's ring stored, an
+        // interior edge whose end has a slot takes that end's rule (the
+        // other end is regular or not complete), or both ends' average.
+        const int32_t d = opp[c];
+        if (d >= 0) {
+          const int32_t s1 = slot[next_corner(c)], s2 = slot[next_corner(d)];
+          if ((s1 & s2) >= 0) {
+            const bool both = (s1 | s2) >= 0;
+            const int32_t a = s1 >= 0 ? s1 : s2;
+            sum.ring(ring_point, a, both ? s2 : a, both, out + 3 * i);
+            continue;
+          }
+        }
+      }
       int32_t q[8];
       if (__builtin_expect(plain_regular_vertices(cv, opp, complete, c, q), 1)) {
         sum(positions, q, out + 3 * i);

@@ -47,6 +47,12 @@ struct RingTable {
   // Per ring entry, the extraordinary rule's point (3 floats) for the edge
   // from the vertex to that neighbour, from the positions build_rings saw.
   Array<float> point;  // no zero fill (every entry is written)
+  // Per corner of the level, where the rings cover most corners (the first
+  // uniform level of a typical mesh): the ring entry whose point is the
+  // extraordinary rule of the corner's vertex for the edge to its next
+  // vertex, -1 where the vertex has no ring. Empty otherwise, or when some
+  // complete extraordinary vertex has no ring (the rules then walk its fan).
+  Array<int32_t> slot;
 };
 
 struct ButterflyContext {

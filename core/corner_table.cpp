@@ -232,12 +232,24 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
                                                          _mm256_set1_epi32(-3)));
   const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
                                         _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()), three));
-  alignas(32) int32_t before[8], after[8], r[8];
+  alignas(32) int32_t before[8], after[8];
   _mm256_store_si256(reinterpret_cast<__m256i*>(before), prev);
   _mm256_store_si256(reinterpret_cast<__m256i*>(after), _mm256_permutevar8x32_epi32(next, m));
-  _mm256_store_si256(reinterpret_cast<__m256i*>(r), right);
   for (int i = 0; i < n; ++i) opposite[before[i]] = after[i];
-  walk_fan(corners, r, n, order ? order + rb : nullptr, first, faces);
+  // walk_fan's walk by doubling: lane s of |at| is the entry s steps from
+  // right[0] (steps of 1, 2 and 4 where s has those bits), without the
+  // chain of n loads, each waiting on the one before.
+  first = _mm256_cvtsi256_si32(right);
+  const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
+  const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
+  const __m256i start = _mm256_set1_epi32(first);
+  __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
+  if (order) _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
+  // The cycle's length: the first step s >= 1 back at right[0], else n.
+  const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
+  faces = back ? int32_t(__builtin_ctz(back)) : n;
   return true;
 }
 #endif

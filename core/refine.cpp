@@ -150,7 +150,7 @@ void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) +
                     vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) +
-                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) +
+                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) + vbytes(s.rings.slot) +
                     vbytes(s.carried.theta) + vbytes(s.carried.deviation) + vbytes(s.carried.kept_from) +
                     vbytes(s.carried.touched) + extra;
   s.peak = std::max(s.peak, b);

@@ -306,9 +306,10 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
 
 // Levels without creases, tension or green pairs take a shorter path
 // (butterfly_points' plain loop; sums with AVX where the processor has it):
-// every point must be the general path's, bit for bit, with either sum.
+// every point must be the general path's, bit for bit, with either sum, and
+// with the rings' table too.
 TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
-  int64_t edges = 0;
+  int64_t edges = 0, slotted_edges = 0;
   for_each_stencil_level(8000, [&](const std::string& name, StencilLevel& l) {
     const std::vector<int32_t>& corners = l.edges;
     const std::vector<uint8_t> none;
@@ -326,9 +327,23 @@ TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), plain_sse.data());
     EXPECT_EQ(std::memcmp(general.data(), plain_wide.data(), n * sizeof(float)), 0) << name;
     EXPECT_EQ(std::memcmp(general.data(), plain_sse.data(), n * sizeof(float)), 0) << name;
+    // With the rings (as uniform levels have them): where they cover most
+    // corners (an input), the plain loop reads an extraordinary edge's
+    // point through its corners' slots.
+    RingTable rings;
+    build_rings(l.mesh, l.ct, ctx.vclass, l.mesh.num_vertices(), rings, 2);
+    if (!rings.slot.empty()) slotted_edges += int64_t(corners.size());
+    ctx.rings = &rings;
+    std::vector<float> ringed_wide(n), ringed_sse(n);
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), ringed_sse.data());
+    ctx.wide_sums = true;
+    butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), ringed_wide.data());
+    EXPECT_EQ(std::memcmp(general.data(), ringed_wide.data(), n * sizeof(float)), 0) << name;
+    EXPECT_EQ(std::memcmp(general.data(), ringed_sse.data(), n * sizeof(float)), 0) << name;
     edges += int64_t(corners.size());
   });
   EXPECT_GT(edges, 10000);
+  EXPECT_GT(slotted_edges, 5000);  // the slots were used, not just empty
 }
 
 // The uniform path does not walk for its rings: on the input it copies the
