@@ -796,19 +796,21 @@ struct AvxSum {
     _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(rf));
     _mm_store_ss(out + 2, _mm_movehl_ps(rf, rf));
   }
-  // SseSum::ring with x, y and z in one register, both sums made and one
-  // kept (no branch: whether an edge has one extraordinary end or two
-  // follows no pattern).
+  // SseSum::ring with x, y and z in one register and no branch (whether an
+  // edge has one extraordinary end or two follows no pattern; GCC made a
+  // blend of two sums into branches). One end: (0 + 1 a) + (+0), the same
+  // as 0 + 1 a (which is never -0); two: (0 + a / 2) + b / 2.
   __attribute__((target("avx"))) inline void ring(const float* point, int32_t a, int32_t b, bool both,
                                                   float* out) const {
     const __m128i three = _mm_set_epi32(0, -1, -1, -1);
     const __m256d pa = _mm256_cvtps_pd(_mm_maskload_ps(point + 3 * size_t(a), three));
     const __m256d pb = _mm256_cvtps_pd(_mm_maskload_ps(point + 3 * size_t(b), three));
-    const __m256d zero = _mm256_setzero_pd(), half = _mm256_set1_pd(0.5);
-    const __m256d one = _mm256_add_pd(zero, _mm256_mul_pd(_mm256_set1_pd(1.0), pa));
-    const __m256d two = _mm256_add_pd(_mm256_add_pd(zero, _mm256_mul_pd(half, pa)), _mm256_mul_pd(half, pb));
-    const __m256d keep = _mm256_castsi256_pd(_mm256_set1_epi64x(-int64_t(both)));
-    const __m128 rf = _mm256_cvtpd_ps(_mm256_blendv_pd(one, two, keep));
+    const int64_t two = int64_t(both);
+    const __m256d scale = _mm256_castsi256_pd(_mm256_set1_epi64x(0x3FF0000000000000LL - (two << 52)));  // 1 or 1/2
+    const __m256d keep = _mm256_castsi256_pd(_mm256_set1_epi64x(-two));
+    const __m256d first = _mm256_add_pd(_mm256_setzero_pd(), _mm256_mul_pd(scale, pa));
+    const __m256d second = _mm256_and_pd(keep, _mm256_mul_pd(_mm256_set1_pd(0.5), pb));
+    const __m128 rf = _mm256_cvtpd_ps(_mm256_add_pd(first, second));
     _mm_storel_epi64(reinterpret_cast<__m128i*>(out), _mm_castps_si128(rf));
     _mm_store_ss(out + 2, _mm_movehl_ps(rf, rf));
   }
@@ -851,9 +853,12 @@ ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t
         if (d >= 0) {
           const int32_t s1 = slot[next_corner(c)], s2 = slot[next_corner(d)];
           if ((s1 & s2) >= 0) {
-            const bool both = (s1 | s2) >= 0;
-            const int32_t a = s1 >= 0 ? s1 : s2;
-            sum.ring(ring_point, a, both ? s2 : a, both, out + 3 * i);
+            // Selects as arithmetic: a = s1 if it is a slot, else s2; b = s2
+            // when both are, else a.
+            const int32_t both = ~((s1 | s2) >> 31);       // all ones when both are slots
+            const int32_t a = s2 ^ ((s1 ^ s2) & ~(s1 >> 31));
+            const int32_t b = a ^ ((a ^ s2) & both);
+            sum.ring(ring_point, a, b, both != 0, out + 3 * i);
             continue;
           }
         }
