@@ -85,23 +85,28 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   if (out.carried) {
     out.carried = false;
     out.neighbour.resize(out.corner.size() - kRingPad);
+    const int64_t nc = int64_t(mesh.corner_vertex.size());
+    if (out.complete && RingTable::dense(int64_t(out.neighbour.size()), nc)) out.slot.assign(size_t(nc), -1);
+    else Array<int32_t>().swap(out.slot);
+    int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
     parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         const int32_t x = out.corner[i];
         out.neighbour[i] = x >= 0 ? cv[next_corner(x)] : -1;
+        if (slot && x >= 0) slot[x] = int32_t(i);
       }
     });
-    Array<int32_t>().swap(out.slot);  // later levels: the rings cover few corners
     ring_points(mesh, vclass, out, threads, wide_sums);
     return;
   }
-  // Every vertex with a class below the limit (the new vertices of a level
-  // have none yet).
-  const bool all_vertices = int64_t(vclass.complete.size()) <= int64_t(limit);
   limit = std::min(limit, mesh.num_vertices());
   out.offset.assign(size_t(std::max(limit, 0)), -1);
   int64_t total = 0;
-  bool unringed = false;  // a complete extraordinary vertex without a ring
+  // A complete extraordinary vertex without a ring: at or above the limit
+  // (uniform levels make none), or below it without a fan.
+  bool unringed = false;
+  for (size_t v = size_t(std::max(limit, 0)); v < vclass.complete.size(); ++v)
+    unringed |= vclass.complete[v] == VertexClass::kComplete;
   for (int32_t v = 0; v < limit; ++v) {
     const int32_t k = vclass.valence[v];
     if (!vclass.complete[v] || k == 6 || k < 3) continue;
@@ -114,7 +119,8 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   // Slots where the rings cover at least half the corners: written with the
   // rings, each corner at most once (a corner is at one vertex).
   const int64_t nc = int64_t(mesh.corner_vertex.size());
-  if (all_vertices && !unringed && 2 * total >= nc) out.slot.assign(size_t(nc), -1);
+  out.complete = !unringed;
+  if (out.complete && RingTable::dense(total, nc)) out.slot.assign(size_t(nc), -1);
   else Array<int32_t>().swap(out.slot);
   int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
   std::atomic<bool> broken{false};
@@ -146,7 +152,10 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       }
     }
   }, 512);
-  if (broken.load()) Array<int32_t>().swap(out.slot);  // a dropped ring's corners may have slots
+  if (broken.load()) {  // a dropped ring's corners may have slots
+    out.complete = false;
+    Array<int32_t>().swap(out.slot);
+  }
   ring_points(mesh, vclass, out, threads, wide_sums);
 }
 
@@ -167,6 +176,7 @@ void carry_rings(RingTable& rings, int threads) {
   });
   Array<int32_t>().swap(rings.neighbour);
   Array<float>().swap(rings.point);
+  Array<int32_t>().swap(rings.slot);
   rings.carried = true;
 }
 
@@ -817,6 +827,62 @@ struct AvxSum {
 };
 #endif
 
+// The plain loop's points of an edge that takes no ring slot: the regular
+// stencil, else the rules.
+template <typename Sum>
+ITEAS_INLINE void plain_point(const View<false>& view, int32_t c, const float* positions, float* out, Sum sum) {
+  int32_t q[8];
+  if (__builtin_expect(plain_regular_vertices(view.cv, view.opp, view.complete, c, q), 1)) {
+    sum(positions, q, out);
+    return;
+  }
+  PointSum sink{positions};
+  rules(view, c, sink);
+  for (int k = 0; k < 3; ++k) out[k] = float(sink.p[k]);
+}
+
+// The plain loop where the level has ring slots (every complete
+// extraordinary vertex's ring stored): an interior edge with a slot at an
+// end takes that end's rule (the other end is then regular or not
+// complete), or both ends' average. Which edges do follows no pattern (at
+// the first levels a third to nine tenths of them), so a block's edges are
+// first sorted into the two kinds without a branch, then each kind runs as
+// a loop of its own.
+template <typename Sum>
+ITEAS_INLINE void slotted_points(const View<false>& view, const int32_t* corners, int64_t count,
+                                 const float* positions, float* out, Sum sum) {
+  const int32_t* const opp = view.opp;
+  const int32_t* const slot = view.ring_slot;
+  const float* const ring_point = view.ring_point;
+  constexpr int kBlock = 256;
+  int32_t ring_at[kBlock], ring_a[kBlock], ring_b[kBlock], other_at[kBlock];
+  for (int64_t b0 = 0; b0 < count; b0 += kBlock) {
+    const int n = int(std::min<int64_t>(kBlock, count - b0));
+    const int32_t* const block = corners + b0;
+    float* const dst = out + 3 * b0;
+    int nr = 0, no = 0;
+    for (int j = 0; j < n; ++j) {
+      const int32_t c = block[j], d = opp[c];
+      const int32_t s1 = slot[next_corner(c)], s2 = slot[next_corner(d < 0 ? c : d)];
+      // 1 when the edge is interior and one of its ends has a slot.
+      const int32_t ring = int32_t(uint32_t(~(d | (s1 & s2))) >> 31);
+      // a: s1 if it is a slot, else s2; b: s2 when both are slots, else -1.
+      const int32_t both = ~((s1 | s2) >> 31);
+      ring_at[nr] = j;
+      ring_a[nr] = s2 ^ ((s1 ^ s2) & ~(s1 >> 31));
+      ring_b[nr] = s2 | ~both;
+      nr += ring;
+      other_at[no] = j;
+      no += 1 - ring;
+    }
+    for (int r = 0; r < nr; ++r) {
+      const int32_t a = ring_a[r], b = ring_b[r];
+      sum.ring(ring_point, a, b ^ ((b ^ a) & (b >> 31)), b >= 0, dst + 3 * ring_at[r]);
+    }
+    for (int o = 0; o < no; ++o) plain_point(view, block[other_at[o]], positions, dst + 3 * other_at[o], sum);
+  }
+}
+
 // The points of a list of edges. Everything the loop reads is a local: the
 // stores through |out| may alias anything in memory, and a view or captures
 // read through a reference were reloaded after each of them. |sum| (kPlain
@@ -824,11 +890,15 @@ struct AvxSum {
 template <bool G, bool kPlain, typename Sum = SseSum>
 ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t count, const float* positions,
                             float* out, Sum sum = Sum()) {
+  if constexpr (kPlain) {
+    if (view.ring_slot) {
+      slotted_points(view, corners, count, positions, out, sum);
+      return;
+    }
+  }
   const int32_t* const cv = view.cv;
   const int32_t* const opp = view.opp;
   const uint8_t* const complete = view.complete;
-  const int32_t* const slot = kPlain ? view.ring_slot : nullptr;
-  const float* const ring_point = view.ring_point;
   // The faces across a few edges ahead are asked for early: an edge's
   // wings are read through its opposite (corner, opposite, its neighbours,
   // their vertices, one load waiting on the other), and on large levels
@@ -845,24 +915,6 @@ ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t
     }
     const int32_t c = corners[i];
     if (kPlain) {
-      if (slot) {
-        // With every complete extraordinary vertex's ring stored, an
-        // interior edge whose end has a slot takes that end's rule (the
-        // other end is regular or not complete), or both ends' average.
-        const int32_t d = opp[c];
-        if (d >= 0) {
-          const int32_t s1 = slot[next_corner(c)], s2 = slot[next_corner(d)];
-          if ((s1 & s2) >= 0) {
-            // Selects as arithmetic: a = s1 if it is a slot, else s2; b = s2
-            // when both are, else a.
-            const int32_t both = ~((s1 | s2) >> 31);       // all ones when both are slots
-            const int32_t a = s2 ^ ((s1 ^ s2) & ~(s1 >> 31));
-            const int32_t b = a ^ ((a ^ s2) & both);
-            sum.ring(ring_point, a, b, both != 0, out + 3 * i);
-            continue;
-          }
-        }
-      }
       int32_t q[8];
       if (__builtin_expect(plain_regular_vertices(cv, opp, complete, c, q), 1)) {
         sum(positions, q, out + 3 * i);

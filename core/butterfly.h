@@ -47,12 +47,17 @@ struct RingTable {
   // Per ring entry, the extraordinary rule's point (3 floats) for the edge
   // from the vertex to that neighbour, from the positions build_rings saw.
   Array<float> point;  // no zero fill (every entry is written)
-  // Per corner of the level, where the rings cover most corners (the first
-  // uniform level of a typical mesh): the ring entry whose point is the
-  // extraordinary rule of the corner's vertex for the edge to its next
-  // vertex, -1 where the vertex has no ring. Empty otherwise, or when some
-  // complete extraordinary vertex has no ring (the rules then walk its fan).
+  // Every complete extraordinary vertex of the level has its ring (the
+  // input's vertices all below the limit, none left without; carried with
+  // the rings, as uniform levels make no such vertex).
+  bool complete = false;
+  // Per corner of the level, where the rings cover an eighth of the corners
+  // or more (the first uniform levels of a typical mesh) and |complete|:
+  // the ring entry whose point is the extraordinary rule of the corner's
+  // vertex for the edge to its next vertex, -1 where the vertex has no
+  // ring. Empty otherwise (the rules then look the corner up in its ring).
   Array<int32_t> slot;
+  static bool dense(int64_t entries, int64_t corners) { return 8 * entries >= corners; }
 };
 
 struct ButterflyContext {

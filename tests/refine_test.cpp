@@ -358,11 +358,11 @@ TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
     build_rings(m, ct, vclass, limit, rings, 2);
   };
   auto same = [](const RingTable& a, const RingTable& b) {
-    return a.offset == b.offset && a.corner == b.corner && a.neighbour == b.neighbour &&
-           a.point.size() == b.point.size() &&
+    return a.offset == b.offset && a.corner == b.corner && a.neighbour == b.neighbour && a.slot == b.slot &&
+           a.complete == b.complete && a.point.size() == b.point.size() &&
            std::memcmp(a.point.data(), b.point.data(), a.point.size() * sizeof(float)) == 0;
   };
-  int64_t recorded_rings = 0, carried_rings = 0;
+  int64_t recorded_rings = 0, carried_rings = 0, carried_slots = 0;
   for (const Case& c : cases(8000)) {
     // Two tables of the input as refinement builds it (fans split), one
     // recording its fans: build_rings reads those, and walks the other.
@@ -391,9 +391,11 @@ TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
     rings_of(next, next_ct, m.num_vertices(), next_walk);
     EXPECT_TRUE(same(carried, next_walk)) << c.name;
     for (int32_t off : next_walk.offset) carried_rings += off >= 0;
+    carried_slots += int64_t(carried.slot.size());
   }
   EXPECT_GT(recorded_rings, 1000);  // the recorded fans were used, not walked around
   EXPECT_GT(carried_rings, 1000);
+  EXPECT_GT(carried_slots, 1000);  // the carried rings' slots were compared, not just empty
 }
 
 TEST(Refine, BudgetIsNeverExceeded) {
