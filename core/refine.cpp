@@ -98,7 +98,7 @@ struct State {
   // Uniform levels: rings of the extraordinary vertices, all of which are
   // input vertices (index below ring_limit).
   RingTable rings;
-  const std::vector<uint8_t> no_flags;  // empty: no sharp flags, no green pairs (ButterflyContext)
+  const std::vector<uint8_t> no_flags{};  // empty: no sharp flags, no green pairs (ButterflyContext)
   int32_t ring_limit = 0;
   int threads = 1;
   int64_t peak = 0;
