@@ -1,8 +1,7 @@
 #include "core/butterfly.h"
 
-#include <atomic>
-
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <type_traits>
 
@@ -116,14 +115,17 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   }
   out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
-  // Slots where the rings cover at least half the corners: written with the
-  // rings, each corner at most once (a corner is at one vertex).
+  // Slots where the rings are dense: written with the rings, each corner at
+  // most once (a corner is at one vertex). They need every corner of a
+  // ringed vertex in its ring (else an edge at a corner outside it would
+  // read as having no extraordinary end there): known where the table
+  // recorded the vertex's fan and its corners, and the fan holds them all.
   const int64_t nc = int64_t(mesh.corner_vertex.size());
   out.complete = !unringed;
   if (out.complete && RingTable::dense(total, nc)) out.slot.assign(size_t(nc), -1);
   else Array<int32_t>().swap(out.slot);
   int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
-  std::atomic<bool> broken{false};
+  std::atomic<bool> broken{false}, partial{false};
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = out.offset[v];
@@ -131,6 +133,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       const int32_t k = vclass.valence[v];
       const int32_t* order = ct.fan_order(int32_t(v));
       if (order && ct.fans()[v] == k) {  // the closed fan of k faces the walk would take
+        if (ct.recorded_corners(int32_t(v)) != k) partial.store(true, std::memory_order_relaxed);
         for (int32_t j = 0; j < k; ++j) {
           out.corner[off + j] = order[j];
           out.neighbour[off + j] = cv[next_corner(order[j])];
@@ -138,6 +141,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
         }
         continue;
       }
+      partial.store(true, std::memory_order_relaxed);  // walked: its other corners unknown
       int32_t x = ct.vertex_corner(int32_t(v));
       for (int32_t j = 0; j < k; ++j) {
         if (x < 0) {  // defensive: not a closed fan of k faces
@@ -152,7 +156,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       }
     }
   }, 512);
-  if (broken.load()) {  // a dropped ring's corners may have slots
+  if (broken.load() || partial.load()) {  // a dropped ring's corners may have slots
     out.complete = false;
     Array<int32_t>().swap(out.slot);
   }

@@ -114,6 +114,12 @@ class CornerTable {
     const int32_t* order = fan_corner_.data() + fan_offset_[v];
     return order[0] == vertex_corner_[v] ? order : nullptr;
   }
+  // With |record_order|: the number of corners vertex v had when the table
+  // was built (its run, before any vertex was split off it); -1 when not
+  // recorded. Equal to |fans()[v]| when v's recorded fan holds all of them.
+  int32_t recorded_corners(int32_t v) const {
+    return size_t(v) + 1 < fan_offset_.size() ? fan_offset_[v + 1] - fan_offset_[v] : -1;
+  }
   void forget_fans() {
     std::vector<int32_t>().swap(fan_);
     std::vector<int32_t>().swap(fan_offset_);
