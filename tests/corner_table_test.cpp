@@ -254,12 +254,7 @@ TEST(CornerTable, DoubledEdgeInAShortRun) {
 // each; unsplit, it keeps one corner and records the fan that corner starts,
 // in walk order.
 TEST(CornerTable, TwoClosedFansAtOneVertex) {
-  Mesh base;
-  base.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, -1, 0, 0, 0, -1, 0, 0, 0, -1};
-  base.corner_vertex = {0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3,   // tetrahedron (0, 1, 2, 3)
-                        0, 5, 4, 0, 4, 6, 0, 6, 5, 4, 5, 6};  // tetrahedron (0, 4, 5, 6)
-  base.face_group.assign(8, 0);
-  base.materialize();
+  const Mesh base = test::two_tetrahedra_sharing_a_vertex();
   for (int threads : {1, 2}) for (bool wide : {false, true}) {
     Mesh m = base;
     CornerTable ct;

@@ -352,12 +352,7 @@ TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
 // plain loop with the rings must still give the general path's points
 // (the rings' slots are not used for such a table).
 TEST(Refine, RingSlotsNeedEveryCornerInItsRing) {
-  Mesh m;
-  m.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, -1, 0, 0, 0, -1, 0, 0, 0, -1};
-  m.corner_vertex = {0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3,   // tetrahedron (0, 1, 2, 3)
-                     0, 5, 4, 0, 4, 6, 0, 6, 5, 4, 5, 6};  // tetrahedron (0, 4, 5, 6)
-  m.face_group.assign(8, 0);
-  m.materialize();
+  Mesh m = test::two_tetrahedra_sharing_a_vertex();
   CornerTable ct;
   ct.build(m, false, 1, true);
   ASSERT_EQ(m.num_vertices(), 7);

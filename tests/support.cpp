@@ -176,4 +176,14 @@ Mesh planar_grid(int n, const double o[3], const double u[3], const double v[3])
   return m;
 }
 
+Mesh two_tetrahedra_sharing_a_vertex() {
+  Mesh m;
+  m.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, -1, 0, 0, 0, -1, 0, 0, 0, -1};
+  m.corner_vertex = {0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3,   // tetrahedron (0, 1, 2, 3)
+                     0, 5, 4, 0, 4, 6, 0, 6, 5, 4, 5, 6};  // tetrahedron (0, 4, 5, 6)
+  m.face_group.assign(8, 0);
+  m.materialize();
+  return m;
+}
+
 }  // namespace iteas::test

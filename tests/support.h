@@ -45,5 +45,8 @@ int64_t euler_characteristic(const Mesh& m);  // V (used) - E + F
 // Generated shapes.
 Mesh icosphere(int subdivisions);
 Mesh planar_grid(int n, const double origin[3], const double u[3], const double v[3]);
+// Two tetrahedra, (0, 1, 2, 3) and (0, 4, 5, 6), sharing vertex 0: a vertex
+// with two closed fans of three faces.
+Mesh two_tetrahedra_sharing_a_vertex();
 
 }  // namespace iteas::test
