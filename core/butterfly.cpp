@@ -79,13 +79,13 @@ void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, 
 }  // namespace
 
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads, bool wide_sums) {
+                 int threads, bool wide_sums, bool slots) {
   const int32_t* cv = mesh.corner_vertex.data();
   if (out.carried) {
     out.carried = false;
     out.neighbour.resize(out.corner.size() - kRingPad);
     const int64_t nc = int64_t(mesh.corner_vertex.size());
-    if (out.complete && RingTable::dense(int64_t(out.neighbour.size()), nc)) out.slot.assign(size_t(nc), -1);
+    if (slots && out.complete && RingTable::dense(int64_t(out.neighbour.size()), nc)) out.slot.assign(size_t(nc), -1);
     else Array<int32_t>().swap(out.slot);
     int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
     parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
@@ -122,10 +122,13 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   // recorded the vertex's fan and its corners, and the fan holds them all.
   const int64_t nc = int64_t(mesh.corner_vertex.size());
   out.complete = !unringed;
-  if (out.complete && RingTable::dense(total, nc)) out.slot.assign(size_t(nc), -1);
+  if (slots && out.complete && RingTable::dense(total, nc)) out.slot.assign(size_t(nc), -1);
   else Array<int32_t>().swap(out.slot);
   int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
-  std::atomic<bool> broken{false}, partial{false};
+  // A ring walked rather than read from a recorded fan, or a recorded fan
+  // without all its vertex's corners (a walked ring may also be dropped,
+  // its corners' slots written already): then no slots.
+  std::atomic<bool> partial{false};
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = out.offset[v];
@@ -144,11 +147,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       partial.store(true, std::memory_order_relaxed);  // walked: its other corners unknown
       int32_t x = ct.vertex_corner(int32_t(v));
       for (int32_t j = 0; j < k; ++j) {
-        if (x < 0) {  // defensive: not a closed fan of k faces
-          out.offset[v] = -1;
-          broken.store(true, std::memory_order_relaxed);
-          break;
-        }
+        if (x < 0) { out.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
         out.corner[off + j] = x;
         out.neighbour[off + j] = cv[next_corner(x)];
         if (slot) slot[x] = off + j;
@@ -156,7 +155,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       }
     }
   }, 512);
-  if (broken.load() || partial.load()) {  // a dropped ring's corners may have slots
+  if (partial.load()) {
     out.complete = false;
     Array<int32_t>().swap(out.slot);
   }

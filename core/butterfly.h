@@ -100,8 +100,10 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 // carried over from the level before (|out|.carried), else read from the fans
 // the corner table recorded (CornerTable::fan_order), else walked.
 // |wide_sums| as in ButterflyContext (false: SSE2 only, for tests).
+// |slots|: make RingTable::slot where it applies; false when only the
+// general path will read the rings (creases or tension), which never reads them.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads = 1, bool wide_sums = true);
+                 int threads = 1, bool wide_sums = true, bool slots = true);
 
 // After a uniform split of this level (children of face f are 4f..4f+3, child
 // k keeping corner k): keeps only the rings' corners, moved to the children,

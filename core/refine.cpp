@@ -295,7 +295,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
   VertexClass& vclass = s.bctx.vclass;
   if (s.green.empty()) {
-    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide_sums);
+    // Slots only for the plain stencils' path (no creases, no tension).
+    const bool plain = s.bctx.tension == 0 && (s.bctx.sharp == nullptr || s.bctx.sharp->empty());
+    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide_sums, plain);
     s.bctx.rings = &s.rings;
   }
   s.ct.forget_fans();  // the arithmetic below changes the table
