@@ -830,6 +830,15 @@ struct AvxSum {
 };
 #endif
 
+// The point of the edge at corner c by the rules (any case but the
+// regular stencil the loops below sum themselves), rounded to float.
+template <bool G>
+ITEAS_INLINE void rules_point(const View<G>& view, int32_t c, const float* positions, float* out) {
+  PointSum sink{positions};
+  rules(view, c, sink);
+  for (int k = 0; k < 3; ++k) out[k] = float(sink.p[k]);
+}
+
 // The plain loop's points of an edge that takes no ring slot: the regular
 // stencil, else the rules.
 template <typename Sum>
@@ -839,9 +848,7 @@ ITEAS_INLINE void plain_point(const View<false>& view, int32_t c, const float* p
     sum(positions, q, out);
     return;
   }
-  PointSum sink{positions};
-  rules(view, c, sink);
-  for (int k = 0; k < 3; ++k) out[k] = float(sink.p[k]);
+  rules_point(view, c, positions, out);
 }
 
 // The plain loop where the level has ring slots (every complete
@@ -926,9 +933,7 @@ ITEAS_INLINE void points_of(const View<G>& view, const int32_t* corners, int64_t
     } else if (regular_point(view, c, positions, out + 3 * i)) {
       continue;
     }
-    PointSum sink{positions};
-    rules(view, c, sink);
-    for (int k = 0; k < 3; ++k) out[3 * i + k] = float(sink.p[k]);
+    rules_point(view, c, positions, out + 3 * i);
   }
 }
 
@@ -946,6 +951,10 @@ __attribute__((target("avx"))) void plain_points_avx(const View<false>& view, co
 
 }  // namespace
 
+bool plain_stencils(const ButterflyContext& ctx) {
+  return !(ctx.green && !ctx.green->empty()) && ctx.tension == 0 && !(ctx.sharp && !ctx.sharp->empty());
+}
+
 void butterfly_stencil(const ButterflyContext& ctx, int32_t c, std::vector<StencilTerm>& out) {
   out.clear();
   TermList sink{out};
@@ -958,7 +967,7 @@ void butterfly_point(const ButterflyContext& ctx, int32_t c, const float* positi
 
 void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64_t count, const float* positions,
                       float* out) {
-  if (!(ctx.green && !ctx.green->empty()) && ctx.tension == 0 && !(ctx.sharp && !ctx.sharp->empty())) {
+  if (plain_stencils(ctx)) {
     const View<false> view(ctx);
 #if ITEAS_AVX_SUM
     if (ctx.wide_sums && cpu_has(CpuFeature::kAvx)) {

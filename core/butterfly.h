@@ -111,6 +111,10 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
 // carried over too (uniform levels without creases).
 void carry_rings(RingTable& rings, int threads);
 
+// No green pairs, no tension and no sharp flags (sharp = boundary): then
+// butterfly_points takes its plain loop, the only one that reads ring slots.
+bool plain_stencils(const ButterflyContext& ctx);
+
 // The stencil of the new vertex on the edge opposite corner c. Rules:
 //  * sharp edge (boundary or crease): 4-point curve rule -1/16, 9/16, 9/16, -1/16
 //    along the curve; at a curve end (a vertex with other than two sharp edges)

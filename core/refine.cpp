@@ -296,8 +296,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   VertexClass& vclass = s.bctx.vclass;
   if (s.green.empty()) {
     // Slots only for the plain stencils' path (no creases, no tension).
-    const bool plain = s.bctx.tension == 0 && (s.bctx.sharp == nullptr || s.bctx.sharp->empty());
-    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide_sums, plain);
+    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide_sums, plain_stencils(s.bctx));
     s.bctx.rings = &s.rings;
   }
   s.ct.forget_fans();  // the arithmetic below changes the table
