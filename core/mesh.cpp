@@ -246,6 +246,92 @@ int64_t drop_degenerate_faces(Mesh& mesh) {
   return nf - out;
 }
 
+namespace {
+// Bit i of x (x < 32) moved to bit 3i: the Morton code of a cell is
+// kSpread[x] | kSpread[y] << 1 | kSpread[z] << 2.
+struct Spread {
+  uint32_t bits[32];
+  constexpr Spread() : bits() {
+    for (uint32_t x = 0; x < 32; ++x)
+      for (int i = 0; i < 5; ++i) bits[x] |= ((x >> i) & 1u) << (3 * i);
+  }
+};
+constexpr Spread kSpread;
+}  // namespace
+
+void order_faces_spatially(Mesh& mesh) {
+  const int32_t nf = mesh.num_faces(), nv = mesh.num_vertices();
+  if (nf < 2 || nv == 0) return;
+  // A grid of 2^bits cells a side with about as many cells as faces, at
+  // most 32 a side (one counting pass over 32,768 cells): a surface crosses
+  // a small part of them, and the faces of a cell stay in their order.
+  int bits = 2;
+  while (bits < 5 && (int64_t(1) << (3 * bits)) < nf) ++bits;
+  const Aabb box = bounding_box(mesh);
+  const float top = float((1 << bits) - 1);
+  float lo[3], scale[3];
+  for (int k = 0; k < 3; ++k) {
+    lo[k] = box.lo[k];
+    const float extent = box.hi[k] - box.lo[k];
+    scale[k] = extent > 0.0f ? float(1 << bits) / extent : 0.0f;  // a flat box: one layer of cells
+  }
+  // Each vertex's cell; a face goes to its first vertex's (faces are small
+  // beside a cell, and a vertex is cheaper than a centroid).
+  std::vector<uint32_t> cell(static_cast<size_t>(nv));
+  const float* pos = mesh.positions.data();
+  for (int32_t v = 0; v < nv; ++v) {
+    uint32_t code = 0;
+    for (int k = 0; k < 3; ++k) {
+      const float t = (pos[3 * size_t(v) + k] - lo[k]) * scale[k];
+      // Comparisons that are false for NaN: such a vertex goes to cell 0.
+      const uint32_t q = t > 0.0f ? (t < top ? uint32_t(t) : uint32_t(top)) : 0u;
+      code |= kSpread.bits[q] << k;
+    }
+    cell[v] = code;
+  }
+  const int32_t* cv = mesh.corner_vertex.data();
+  std::vector<int32_t> at((size_t(1) << (3 * bits)) + 1, 0);  // counts, then where a cell's next face goes
+  for (int32_t f = 0; f < nf; ++f) ++at[cell[cv[3 * size_t(f)]] + 1];
+  for (size_t c = 1; c < at.size(); ++c) at[c] += at[c - 1];
+  Array<int32_t> corners(3 * size_t(nf)), wedges(mesh.has_wedges() ? 3 * size_t(nf) : 0);
+  std::vector<int32_t> groups(mesh.face_group.size());
+  const int32_t* cw = mesh.corner_wedge.data();
+  for (int32_t f = 0; f < nf; ++f) {
+    const size_t from = 3 * size_t(f), i = size_t(at[cell[cv[from]]]++);
+    for (int k = 0; k < 3; ++k) corners[3 * i + k] = cv[from + k];
+    if (cw)
+      for (int k = 0; k < 3; ++k) wedges[3 * i + k] = cw[from + k];
+    if (!groups.empty()) groups[i] = mesh.face_group[f];
+  }
+  mesh.corner_vertex.swap(corners);
+  mesh.corner_wedge.swap(wedges);
+  mesh.face_group.swap(groups);
+
+  // Vertices numbered in order of first use by the faces so ordered (as the
+  // readers number them in the file's order): the per-vertex arrays are then
+  // in spatial order too. Vertices no face uses follow, in their order.
+  std::vector<int32_t>& id = at;  // the cells' counts are done with
+  id.assign(static_cast<size_t>(nv), -1);
+  int32_t next = 0;
+  for (int32_t& v : mesh.corner_vertex) {
+    if (id[v] < 0) id[v] = next++;
+    v = id[v];
+  }
+  for (int32_t v = 0; v < nv; ++v)
+    if (id[v] < 0) id[v] = next++;
+  Array<float> positions(mesh.positions.size());
+  for (int32_t v = 0; v < nv; ++v)
+    for (int k = 0; k < 3; ++k) positions[3 * size_t(id[v]) + k] = pos[3 * size_t(v) + k];
+  mesh.positions.swap(positions);
+  for (VertexChannel& ch : mesh.vertex_channels) {
+    std::vector<float> data(ch.data.size());
+    for (int32_t v = 0; v < nv; ++v)
+      for (int k = 0; k < 3; ++k) data[3 * size_t(id[v]) + k] = ch.data[3 * size_t(v) + k];
+    ch.data.swap(data);
+  }
+  for (int32_t& v : mesh.wedge_vertex) v = id[v];
+}
+
 void Mesh::materialize() {
   if (!has_wedges()) {
     corner_wedge = corner_vertex;

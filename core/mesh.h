@@ -148,4 +148,14 @@ Aabb bounding_box(const Mesh& mesh);
 // Drops faces with a repeated vertex (SPEC §2); returns how many were dropped.
 int64_t drop_degenerate_faces(Mesh& mesh);
 
+// Puts the faces (with their corners' wedges and their groups) in the order
+// of a Z-order (Morton) curve through a grid over the bounding box, by the
+// cell of each face's first vertex (faces of one cell keep their relative
+// order), then numbers the vertices in order of first use (positions and
+// per-vertex channels move with them; vertices no face uses come last).
+// Wedges keep their numbers. A thread's share of a loop over faces or
+// vertices is then one region of the surface, whose vertices, edges and
+// neighbours the other thread seldom touches (see refine_mesh).
+void order_faces_spatially(Mesh& mesh);
+
 }  // namespace iteas

@@ -1226,6 +1226,18 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (std::all_of(m.face_group.begin(), m.face_group.end(), [](int32_t g) { return g == 0; }))
     std::vector<int32_t>().swap(m.face_group);
 
+  // Uniform levels split every face's work by index: a thread's share of
+  // each loop is a range of faces, and their children at the next level.
+  // Faces in a scanner's or an exporter's order put neighbours far apart in
+  // it, and each thread then reads vertices, opposites and points the other
+  // has just written (a line on the other core costs a round trip). In a
+  // spatial order each share is a region of the surface. Only for jobs whose
+  // last level is large enough to split (kTinyStepFaces), so that small jobs
+  // do not pay for the sort; never by the thread count, so the output is the
+  // same on any number of threads.
+  if (hooks.spatial_order && o.mode == Mode::kUniform && o.levels >= 1 && last_level_faces >= kSmallStepFaces)
+    order_faces_spatially(m);
+
   const double t0 = now();
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();

@@ -76,6 +76,10 @@ struct RefineHooks {
   // Testing: false runs on exactly the threads the options give, where the
   // refinement would otherwise take one for a small job (threads_for).
   bool choose_threads = true;
+  // Testing: false keeps the input's face and vertex order in uniform mode
+  // (see order_faces_spatially; the output is then the same mesh numbered
+  // as the input is).
+  bool spatial_order = true;
 };
 
 enum class RefineResult { kOk, kCancelled };

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <iterator>
 #include <cstring>
@@ -27,11 +28,13 @@ RefineOptions opts(Mode mode, int levels, int threads = 2) {
   return o;
 }
 
-Mesh refined(const Mesh& in, const RefineOptions& o, RefineStats* st = nullptr, bool force_adaptive = false) {
+Mesh refined(const Mesh& in, const RefineOptions& o, RefineStats* st = nullptr, bool force_adaptive = false,
+             bool spatial_order = true) {
   Mesh m = in;
   RefineStats local;
   RefineHooks h;
   h.force_adaptive_path = force_adaptive;
+  h.spatial_order = spatial_order;
   h.choose_threads = false;  // two threads mean two, whatever the machine's state
   refine_mesh(m, o, h, st ? st : &local);
   m.materialize();
@@ -42,6 +45,32 @@ bool same_mesh(const Mesh& a, const Mesh& b) {
   return a.positions.size() == b.positions.size() &&
          std::memcmp(a.positions.data(), b.positions.data(), a.positions.size() * 4) == 0 &&
          a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group;
+}
+
+// The first |n| vertices' positions of |a| and |b| as sorted lists of
+// triples: equal bit for bit when they hold the same points, numbered in
+// any order.
+std::vector<std::array<float, 3>> sorted_points(const Mesh& m, int32_t n) {
+  std::vector<std::array<float, 3>> p(static_cast<size_t>(n));
+  for (int32_t v = 0; v < n; ++v) p[v] = {m.positions[3 * size_t(v)], m.positions[3 * size_t(v) + 1], m.positions[3 * size_t(v) + 2]};
+  std::sort(p.begin(), p.end());
+  return p;
+}
+
+// Each face as the triple of its corners' positions, started at the least
+// (orientation kept), the list sorted: equal for two meshes with the same
+// triangles in any numbering of faces and vertices.
+std::vector<std::array<std::array<float, 3>, 3>> sorted_faces(const Mesh& m) {
+  std::vector<std::array<std::array<float, 3>, 3>> f(static_cast<size_t>(m.num_faces()));
+  for (int32_t i = 0; i < m.num_faces(); ++i) {
+    for (int k = 0; k < 3; ++k) {
+      const size_t v = size_t(m.corner_vertex[3 * size_t(i) + k]);
+      f[i][k] = {m.positions[3 * v], m.positions[3 * v + 1], m.positions[3 * v + 2]};
+    }
+    std::rotate(f[i].begin(), std::min_element(f[i].begin(), f[i].end()), f[i].end());
+  }
+  std::sort(f.begin(), f.end());
+  return f;
 }
 
 // |m| with its first triangle twice: the input's table then splits vertices
@@ -86,9 +115,13 @@ TEST(Refine, TopologyPropertiesOnEveryMesh) {
           EXPECT_EQ(ef.boundary_corners, 0);
         }
       }
-      // Old vertices never move.
+      // Old vertices never move: they come first, bit for bit (uniform
+      // refinement of a large job numbers them in its spatial order).
       ASSERT_GE(out.positions.size(), base.positions.size());
-      EXPECT_EQ(std::memcmp(out.positions.data(), base.positions.data(), base.positions.size() * 4), 0);
+      if (mode == Mode::kUniform)
+        EXPECT_EQ(sorted_points(out, base.num_vertices()), sorted_points(base, base.num_vertices()));
+      else
+        EXPECT_EQ(std::memcmp(out.positions.data(), base.positions.data(), base.positions.size() * 4), 0);
       EXPECT_EQ(st.triangles_out, out.num_faces());
       if (mode == Mode::kUniform) EXPECT_EQ(out.num_faces(), base.num_faces() * 16);
       else EXPECT_LE(out.num_faces(), base.num_faces() * (1 << (2 * levels)));
@@ -123,6 +156,26 @@ TEST(Refine, SameOutputForOneAndTwoThreads) {
       EXPECT_TRUE(same_mesh(refined(c.mesh, opts(mode, 2, 1)), refined(c.mesh, opts(mode, 2, 2))));
     }
   }
+}
+
+// A large uniform job puts faces in spatial order and numbers vertices by
+// first use (order_faces_spatially), for the threads' sake: the output must
+// be the same triangles, bit for bit, as in the input's order, and the same
+// for one and two threads.
+TEST(Refine, SpatialOrderOnlyRenumbers) {
+  int reordered = 0;
+  for (const Case& c : cases(20000)) {
+    SCOPED_TRACE(c.name);
+    const Mesh ordered = refined(c.mesh, opts(Mode::kUniform, 2, 2));
+    const Mesh plain = refined(c.mesh, opts(Mode::kUniform, 2, 2), nullptr, false, false);
+    ASSERT_EQ(ordered.num_faces(), plain.num_faces());
+    ASSERT_EQ(ordered.num_vertices(), plain.num_vertices());
+    EXPECT_EQ(sorted_faces(ordered), sorted_faces(plain));
+    EXPECT_EQ(sorted_points(ordered, ordered.num_vertices()), sorted_points(plain, plain.num_vertices()));
+    EXPECT_TRUE(same_mesh(ordered, refined(c.mesh, opts(Mode::kUniform, 2, 1))));
+    reordered += !same_mesh(ordered, plain);
+  }
+  EXPECT_GT(reordered, 5);  // the order did change some outputs
 }
 
 TEST(Refine, PlanarMeshStaysPlanar) {
@@ -170,9 +223,11 @@ TEST(Refine, AffineInvariance) {
       const double* shift = mode == Mode::kUniform ? t : none;
       Mesh moved = cs.mesh;
       transform(moved, *a, shift);
-      Mesh x = refined(cs.mesh, opts(mode, 2));
+      // In the input's order: the spatial order of a large uniform job
+      // depends on where the faces are (SpatialOrderOnlyRenumbers).
+      Mesh x = refined(cs.mesh, opts(mode, 2), nullptr, false, false);
       transform(x, *a, shift);
-      const Mesh y = refined(moved, opts(mode, 2));
+      const Mesh y = refined(moved, opts(mode, 2), nullptr, false, false);
       ASSERT_EQ(x.num_faces(), y.num_faces());
       ASSERT_EQ(x.corner_vertex, y.corner_vertex);
       const double diag = bounding_box(y).diagonal();
