@@ -1232,10 +1232,12 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   // it, and each thread then reads vertices, opposites and points the other
   // has just written (a line on the other core costs a round trip). In a
   // spatial order each share is a region of the surface. Only for jobs whose
-  // last level is large enough to split (kTinyStepFaces), so that small jobs
+  // last level starts from kSmallStepFaces faces or more, so that small jobs
   // do not pay for the sort; never by the thread count, so the output is the
-  // same on any number of threads.
-  if (hooks.spatial_order && o.mode == Mode::kUniform && o.levels >= 1 && last_level_faces >= kSmallStepFaces)
+  // same on any number of threads; and only when a level will run (the
+  // budget allows the first), so an unrefined output keeps the input's order.
+  if (hooks.spatial_order && o.mode == Mode::kUniform && o.levels >= 1 && last_level_faces >= kSmallStepFaces &&
+      int64_t(m.num_faces()) * 4 <= o.max_triangles)
     order_faces_spatially(m);
 
   const double t0 = now();

@@ -174,6 +174,12 @@ TEST(Refine, SpatialOrderOnlyRenumbers) {
     EXPECT_EQ(sorted_points(ordered, ordered.num_vertices()), sorted_points(plain, plain.num_vertices()));
     EXPECT_TRUE(same_mesh(ordered, refined(c.mesh, opts(Mode::kUniform, 2, 1))));
     reordered += !same_mesh(ordered, plain);
+    // A budget that stops the first level leaves the input as it was.
+    RefineOptions none = opts(Mode::kUniform, 2);
+    none.max_triangles = 4 * int64_t(c.mesh.num_faces()) - 1;
+    const Mesh input = prepared(c.mesh), kept = refined(c.mesh, none);
+    EXPECT_EQ(kept.corner_vertex, input.corner_vertex);
+    EXPECT_TRUE(kept.positions == input.positions);
   }
   EXPECT_GT(reordered, 5);  // the order did change some outputs
 }
