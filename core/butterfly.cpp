@@ -84,10 +84,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   if (out.carried) {
     out.carried = false;
     out.neighbour.resize(out.corner.size() - kRingPad);
-    const int64_t nc = int64_t(mesh.corner_vertex.size());
-    if (slots && out.complete && RingTable::dense(int64_t(out.neighbour.size()), nc)) out.slot.assign(size_t(nc), -1);
-    else Array<int32_t>().swap(out.slot);
-    int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
+    int32_t* const slot = out.prepare_slots(slots, int64_t(mesh.corner_vertex.size()));
     parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         const int32_t x = out.corner[i];
@@ -120,11 +117,8 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   // ringed vertex in its ring (else an edge at a corner outside it would
   // read as having no extraordinary end there): known where the table
   // recorded the vertex's fan and its corners, and the fan holds them all.
-  const int64_t nc = int64_t(mesh.corner_vertex.size());
   out.complete = !unringed;
-  if (slots && out.complete && RingTable::dense(total, nc)) out.slot.assign(size_t(nc), -1);
-  else Array<int32_t>().swap(out.slot);
-  int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
+  int32_t* const slot = out.prepare_slots(slots, int64_t(mesh.corner_vertex.size()));
   // A ring walked rather than read from a recorded fan, or a recorded fan
   // without all its vertex's corners (a walked ring may also be dropped,
   // its corners' slots written already): then no slots.

@@ -58,6 +58,13 @@ struct RingTable {
   // ring. Empty otherwise (the rules then look the corner up in its ring).
   Array<int32_t> slot;
   static bool dense(int64_t entries, int64_t corners) { return 8 * entries >= corners; }
+  // |slot| sized for |corners| and all -1 when |wanted|, |complete| and the
+  // rings are dense; else emptied. The slots to write (null: none).
+  int32_t* prepare_slots(bool wanted, int64_t corners) {
+    if (wanted && complete && dense(int64_t(neighbour.size()), corners)) slot.assign(size_t(corners), -1);
+    else Array<int32_t>().swap(slot);
+    return slot.empty() ? nullptr : slot.data();
+  }
 };
 
 struct ButterflyContext {

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 
 #if defined(__linux__)
 #include <sys/mman.h>
@@ -319,16 +320,15 @@ void order_faces_spatially(Mesh& mesh) {
   }
   for (int32_t v = 0; v < nv; ++v)
     if (id[v] < 0) id[v] = next++;
-  Array<float> positions(mesh.positions.size());
-  for (int32_t v = 0; v < nv; ++v)
-    for (int k = 0; k < 3; ++k) positions[3 * size_t(id[v]) + k] = pos[3 * size_t(v) + k];
-  mesh.positions.swap(positions);
-  for (VertexChannel& ch : mesh.vertex_channels) {
-    std::vector<float> data(ch.data.size());
+  // Three floats per vertex, moved to the vertex's new number.
+  auto renumber = [&](auto& data) {
+    std::remove_reference_t<decltype(data)> moved(data.size());
     for (int32_t v = 0; v < nv; ++v)
-      for (int k = 0; k < 3; ++k) data[3 * size_t(id[v]) + k] = ch.data[3 * size_t(v) + k];
-    ch.data.swap(data);
-  }
+      for (int k = 0; k < 3; ++k) moved[3 * size_t(id[v]) + k] = data[3 * size_t(v) + k];
+    data.swap(moved);
+  };
+  renumber(mesh.positions);
+  for (VertexChannel& ch : mesh.vertex_channels) renumber(ch.data);
   for (int32_t& v : mesh.wedge_vertex) v = id[v];
 }
 
