@@ -22,6 +22,10 @@ const char* job_state_name(JobState s) {
 
 nlohmann::json Job::status_json() const {
   std::lock_guard<std::mutex> lock(mu);
+  return status_json_locked();
+}
+
+nlohmann::json Job::status_json_locked() const {
   nlohmann::json j = {{"id", id},
                       {"status", job_state_name(state)},
                       {"progress", {{"level", level}, {"phase", phase}, {"fraction", fraction}}}};
@@ -50,7 +54,10 @@ Admission JobQueue::submit(const std::shared_ptr<Job>& job) {
   queue_.push_back(job);
   if (job->listed) {
     jobs_[job->id] = job;
-    if (observer_) observer_(*job);
+    if (observer_) {
+      std::lock_guard<std::mutex> jl(job->mu);
+      observer_(*job);
+    }
   }
   wake_.notify_all();
   return Admission::kAccepted;
@@ -118,9 +125,9 @@ void JobQueue::drain(std::chrono::milliseconds grace) {
       std::lock_guard<std::mutex> lock(job->mu);
       job->state = JobState::kCancelled;
       job->finished = std::chrono::steady_clock::now();
+      if (job->listed && observer_) observer_(*job);
       job->changed.notify_all();
     }
-    if (job->listed && observer_) observer_(*job);
   }
   for (std::thread& t : workers_) t.join();
   workers_.clear();
@@ -187,9 +194,9 @@ void JobQueue::work() {
       std::lock_guard<std::mutex> jl(job->mu);
       job->state = JobState::kRunning;
       job->phase = "decode";
+      if (job->listed && observer_) observer_(*job);
       job->changed.notify_all();
     }
-    if (job->listed && observer_) observer_(*job);
     JobHooks hooks;
     hooks.now_ms = now_ms_;
     hooks.cancel = &job->cancel;
@@ -235,9 +242,9 @@ void JobQueue::work() {
       job->input.clear();
       job->input.shrink_to_fit();
       job->finished = std::chrono::steady_clock::now();
+      if (job->listed && observer_) observer_(*job);
       job->changed.notify_all();
     }
-    if (job->listed && observer_) observer_(*job);
     {
       std::lock_guard<std::mutex> lock(mu_);
       reserved_ -= job->memory_estimate;

@@ -46,6 +46,7 @@ struct Job {
   Status error;
 
   nlohmann::json status_json() const;  // takes |mu|
+  nlohmann::json status_json_locked() const;  // |mu| held by the caller
   bool finished_state() const { return state == JobState::kDone || state == JobState::kFailed || state == JobState::kCancelled; }
 };
 
@@ -81,6 +82,10 @@ class JobQueue {
 
   // Called with each listed job when it is queued (under the queue's lock,
   // before a worker can see it), starts and ends: the shared store's writer.
+  // Always with the job's |mu| held, the new state set: a client that sees
+  // the state from this replica finds it in the store from any other (a job
+  // reported done here had answered 409 from another replica until the store
+  // caught up). Must not take |mu| itself.
   void set_observer(std::function<void(Job&)> f) { observer_ = std::move(f); }
 
   size_t queued() const;

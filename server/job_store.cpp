@@ -2,10 +2,13 @@
 
 #include <unistd.h>
 
+#include <algorithm>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <random>
 #include <sstream>
+#include <thread>
 
 namespace iteas {
 namespace fs = std::filesystem;
@@ -38,7 +41,9 @@ bool read_all(const std::string& file, std::string* out) {
 
 }  // namespace
 
-JobStore::JobStore(std::string dir) : dir_(std::move(dir)) {}
+JobStore::JobStore(std::string dir) : dir_(std::move(dir)) {
+  if (const char* d = std::getenv("ITEAS_TEST_STORE_DELAY_MS")) delay_ms_ = std::clamp(std::atoi(d), 0, 10000);
+}
 
 std::string JobStore::path(const std::string& id, const char* ext) const { return dir_ + "/" + id + ext; }
 
@@ -52,6 +57,7 @@ bool JobStore::usable(std::string* error) const {
 
 void JobStore::put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result) const {
   if (!enabled()) return;
+  if (delay_ms_ > 0) std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms_));
   // The result first: a status that says "done" always finds its bytes.
   if (result) write_atomically(path(id, ".result"), reinterpret_cast<const char*>(result->data()), result->size());
   const std::string text =

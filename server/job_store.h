@@ -38,6 +38,9 @@ class JobStore {
  private:
   std::string path(const std::string& id, const char* ext) const;
   std::string dir_;
+  // Tests: ITEAS_TEST_STORE_DELAY_MS makes every put() wait that long first,
+  // as a slow shared volume would (0: no wait).
+  int delay_ms_ = 0;
 };
 
 }  // namespace iteas

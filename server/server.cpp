@@ -266,11 +266,10 @@ int serve(const ServerConfig& cfg) {
     std::string error;
     if (!store.usable(&error)) { logger->error("{}", error); return 2; }
   }
-  queue.set_observer([&](Job& job) {
+  queue.set_observer([&](Job& job) {  // job.mu held (JobQueue::set_observer)
     StoredJob s;
-    s.status = job.status_json();
+    s.status = job.status_json_locked();
     s.content_type = content_type_for(job.request.output_format);
-    std::lock_guard<std::mutex> lock(job.mu);
     if (job.state == JobState::kFailed) s.http_status = status_for(job.error);
     store.put(job.id, s, job.state == JobState::kDone ? &job.result : nullptr);
   });

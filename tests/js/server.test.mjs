@@ -266,6 +266,38 @@ maybe('backpressure')('a full queue answers 429 with Retry-After; SIGTERM drains
   assert.match(s.log(), /draining/);
 });
 
+maybe('replicas')('replicas sharing a job store: a job one reports done has its result on the other at once', async () => {
+  // The scale test's race, on loopback: a client polls replica A until the
+  // job is done and fetches the result through replica B, which knows the job
+  // only from the shared store. A reports "done" only once the store has it.
+  // A's store writes are slowed (as on a network volume) so that a gap
+  // between the two would be seen, not just possible.
+  const dir = fs.mkdtempSync(path.join(tmp, 'jobs-'));
+  const a = await startServer(['--workers', '2', '--queue', '64', '--job-dir', dir], { ITEAS_TEST_STORE_DELAY_MS: '30' });
+  const b = await startServer(['--workers', '1', '--job-dir', dir]);
+  const mesh = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  try {
+    for (let i = 0; i < 12; i++) {
+      const sub = await fetch(`${a.url}/v1/jobs?mode=uniform&levels=${2 + (i % 2)}&compression=none`,
+        { method: 'POST', body: mesh, headers: { 'Content-Type': 'application/octet-stream' } });
+      assert.equal(sub.status, 202);
+      const loc = sub.headers.get('location');
+      let state = '';
+      for (let k = 0; k < 20000 && state !== 'done'; k++) {
+        state = (await (await fetch(a.url + loc)).json()).status;
+        assert.ok(['queued', 'running', 'done'].includes(state), state);
+      }
+      assert.equal(state, 'done');
+      const res = await fetch(`${b.url}${loc}/result`);
+      assert.equal(res.status, 200, `job ${i}: ${res.status} ${res.status === 200 ? '' : await res.text()}`);
+      assert.equal(Buffer.from(await res.arrayBuffer()).subarray(0, 4).toString(), 'glTF');
+    }
+  } finally {
+    await stopServer(a);
+    await stopServer(b);
+  }
+});
+
 maybe('openapi')('the OpenAPI document passes a standard linter and is served', async () => {
   const lint = spawnSync(path.join(path.dirname(new URL(import.meta.url).pathname), 'node_modules/.bin/redocly'),
     ['lint', '--config', path.join(SOURCE_DIR, 'proto/redocly.yaml'), path.join(SOURCE_DIR, 'proto/openapi.yaml')], { encoding: 'utf8' });
