@@ -98,27 +98,20 @@ ResidentRanges& resident() {
 // Threads that fault in a large array's pages (PagePopulateThreads).
 thread_local int tl_populate_threads = 1;
 
-// Below this, one call on the calling thread: another thread's part would
-// save less than handing it over costs.
-constexpr uintptr_t kParallelPopulateBytes = uintptr_t(64) << 10;
-
-// MADV_POPULATE_WRITE over [b, e) (page aligned), in one part per thread for a
-// large range: whole 2 MB stretches (huge pages) per part where the range
-// holds more than one, else whole pages.
+// MADV_POPULATE_WRITE over [b, e) (page aligned), in populate_parts() parts
+// of whole 2 MB stretches, one per thread.
 void populate(uintptr_t b, uintptr_t e) {
 #if defined(MADV_POPULATE_WRITE)
-  const int threads = tl_populate_threads;
-  if (threads <= 1 || e - b < kParallelPopulateBytes || inside_parallel_for()) {
+  const int parts = inside_parallel_for() ? 1 : populate_parts(e - b, tl_populate_threads);
+  if (parts <= 1) {
     madvise(reinterpret_cast<void*>(b), e - b, MADV_POPULATE_WRITE);
     return;
   }
-  const uintptr_t unit = e - b >= 2 * kHugePageBytes ? uintptr_t(kHugePageBytes) : uintptr_t(4096);
-  const int64_t parts = threads;
   auto cut = [&](int64_t p) {
     if (p == parts) return e;
-    return std::max(b, (b + (e - b) / uintptr_t(parts) * uintptr_t(p)) & ~(unit - 1));
+    return std::max(b, (b + (e - b) / uintptr_t(parts) * uintptr_t(p)) & ~(uintptr_t(kHugePageBytes) - 1));
   };
-  parallel_for_chunks(parts, threads, [&](int64_t p0, int64_t p1) {
+  parallel_for_chunks(parts, parts, [&](int64_t p0, int64_t p1) {
     for (int64_t p = p0; p < p1; ++p) {
       const uintptr_t lo = cut(p), hi = cut(p + 1);
       if (hi > lo) madvise(reinterpret_cast<void*>(lo), hi - lo, MADV_POPULATE_WRITE);
@@ -147,6 +140,11 @@ PagePopulateThreads::~PagePopulateThreads() {
 #if defined(__linux__)
   tl_populate_threads = previous_;
 #endif
+}
+
+int populate_parts(size_t bytes, int threads) {
+  if (threads <= 1 || bytes < kPopulatePartsFrom) return 1;
+  return int(std::min<size_t>(size_t(threads), bytes / kHugePageBytes));
 }
 
 void forget_resident_memory() {

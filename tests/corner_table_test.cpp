@@ -10,6 +10,10 @@
 #include <stdexcept>
 #include <thread>
 
+#include <malloc.h>
+#include <sys/mman.h>
+#include <unistd.h>
+
 #include "core/angles.h"
 #include "core/corner_table.h"
 #include "core/cpu_features.h"
@@ -643,6 +647,47 @@ TEST(Parallel, PiecesKnowTheyRunInsideALoop) {
   EXPECT_GT(pieces.load(), 1);
   EXPECT_EQ(outside.load(), 0);
   EXPECT_FALSE(iteas::inside_parallel_for());
+}
+
+// Fresh arrays are faulted in in parts only from kPopulatePartsFrom (16 MB),
+// a whole number of 2 MB stretches per part: smaller ones in one call.
+TEST(Pages, OnlyLargeArraysAreFaultedInInParts) {
+  using iteas::kHugePageBytes;
+  using iteas::kPopulatePartsFrom;
+  using iteas::populate_parts;
+  EXPECT_EQ(populate_parts(700 * 1024, 2), 1);
+  EXPECT_EQ(populate_parts(kPopulatePartsFrom - 1, 2), 1);
+  EXPECT_EQ(populate_parts(kPopulatePartsFrom, 2), 2);
+  EXPECT_EQ(populate_parts(64 * kHugePageBytes, 1), 1);
+  EXPECT_EQ(populate_parts(64 * kHugePageBytes, 4), 4);
+  EXPECT_EQ(populate_parts(kPopulatePartsFrom, 64), int(kPopulatePartsFrom / kHugePageBytes));
+}
+
+// A fresh array's pages are all resident before anything is written to it,
+// whether it is faulted in in one call (300 KB) or in parts on two threads
+// (20 MB). Skipped where the kernel cannot populate (before Linux 5.14).
+TEST(Pages, FreshArraysAreResidentBeforeTheyAreWritten) {
+#if defined(MADV_POPULATE_WRITE)
+  const long page = sysconf(_SC_PAGESIZE);
+  void* probe = mmap(nullptr, size_t(page), PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+  ASSERT_NE(probe, MAP_FAILED);
+  const bool can = madvise(probe, size_t(page), MADV_POPULATE_WRITE) == 0;
+  munmap(probe, size_t(page));
+  if (!can) GTEST_SKIP() << "no MADV_POPULATE_WRITE";
+  mallopt(M_MMAP_THRESHOLD, 128 * 1024);  // both arrays mapped afresh
+  const iteas::PagePopulateThreads two(2);
+  for (size_t bytes : {size_t(300) << 10, size_t(20) << 20}) {
+    SCOPED_TRACE(bytes);
+    iteas::Array<int32_t> a(bytes / sizeof(int32_t));
+    const uintptr_t lo = (reinterpret_cast<uintptr_t>(a.data()) + uintptr_t(page) - 1) & ~uintptr_t(page - 1);
+    const uintptr_t hi = (reinterpret_cast<uintptr_t>(a.data()) + bytes) & ~uintptr_t(page - 1);
+    std::vector<unsigned char> in((hi - lo) / uintptr_t(page));
+    ASSERT_EQ(mincore(reinterpret_cast<void*>(lo), hi - lo, in.data()), 0);
+    EXPECT_EQ(std::count_if(in.begin(), in.end(), [](unsigned char x) { return (x & 1) == 0; }), 0);
+  }
+#else
+  GTEST_SKIP() << "no MADV_POPULATE_WRITE";
+#endif
 }
 
 // The rule: one thread only for a small step while the CPUs are far apart, or
