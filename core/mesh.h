@@ -41,16 +41,15 @@ void forget_resident_memory();
 // a large array on up to |threads| threads (<= 0: all cores), a part each,
 // as the kernel zeroes every new page and two threads zero twice as many; the
 // refinement sets its own thread count. Not inside a parallel_for's pieces.
-// Only arrays of 16 MB or more are split, in whole 2 MB stretches
+// Only arrays of two 2 MB stretches or more are split, in whole stretches
 // (populate_parts). Split into small pages, both halves of an array share the
 // kernel's locks for its page tables, and two threads faulted in arrays of
 // 40-700 KB more slowly than one (bunny-npm on two threads, fresh memory:
-// level 2 0.97 -> 0.90 ms, level 3 2.85 -> 2.5 ms with those in one call).
-// Up to about 12 MB, whose pages one thread then writes soon after, one call
-// was also faster (level 4: 7.2-7.3 ms, split 7.8-8.1 ms); the 26-53 MB
-// arrays of bun_zipper level 3 are faulted in faster on two (42 ms against
-// 48-49 ms in one call each).
-constexpr size_t kPopulatePartsFrom = size_t(16) << 20;
+// level 2 0.93-0.97 -> 0.89-0.90 ms, level 3 2.76-2.83 -> 2.48-2.56 ms with
+// those in one call). Arrays of 4-12 MB (bunny-npm level 4) were faulted in
+// faster in one call too, but bun_zipper's of 4-16 MB were not (level 3 on
+// two threads 6 % slower that way): whole stretches stay split.
+constexpr size_t kPopulatePartsFrom = 2 * kHugePageBytes;
 // The parts a fresh range of |bytes| is faulted in as, on |threads| threads.
 int populate_parts(size_t bytes, int threads);
 class PagePopulateThreads {

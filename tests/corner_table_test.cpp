@@ -649,8 +649,8 @@ TEST(Parallel, PiecesKnowTheyRunInsideALoop) {
   EXPECT_FALSE(iteas::inside_parallel_for());
 }
 
-// Fresh arrays are faulted in in parts only from kPopulatePartsFrom (16 MB),
-// a whole number of 2 MB stretches per part: smaller ones in one call.
+// Fresh arrays are faulted in in parts only from kPopulatePartsFrom (two 2 MB
+// stretches), a whole number of stretches per part: smaller ones in one call.
 TEST(Pages, OnlyLargeArraysAreFaultedInInParts) {
   using iteas::kHugePageBytes;
   using iteas::kPopulatePartsFrom;
@@ -665,7 +665,7 @@ TEST(Pages, OnlyLargeArraysAreFaultedInInParts) {
 
 // A fresh array's pages are all resident before anything is written to it,
 // whether it is faulted in in one call (300 KB) or in parts on two threads
-// (20 MB). Skipped where the kernel cannot populate (before Linux 5.14).
+// (9 MB). Skipped where the kernel cannot populate (before Linux 5.14).
 TEST(Pages, FreshArraysAreResidentBeforeTheyAreWritten) {
 #if defined(MADV_POPULATE_WRITE)
   const long page = sysconf(_SC_PAGESIZE);
@@ -676,7 +676,7 @@ TEST(Pages, FreshArraysAreResidentBeforeTheyAreWritten) {
   if (!can) GTEST_SKIP() << "no MADV_POPULATE_WRITE";
   mallopt(M_MMAP_THRESHOLD, 128 * 1024);  // both arrays mapped afresh
   const iteas::PagePopulateThreads two(2);
-  for (size_t bytes : {size_t(300) << 10, size_t(20) << 20}) {
+  for (size_t bytes : {size_t(300) << 10, size_t(9) << 20}) {
     SCOPED_TRACE(bytes);
     iteas::Array<int32_t> a(bytes / sizeof(int32_t));
     const uintptr_t lo = (reinterpret_cast<uintptr_t>(a.data()) + uintptr_t(page) - 1) & ~uintptr_t(page - 1);
