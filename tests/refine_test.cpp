@@ -47,9 +47,9 @@ bool same_mesh(const Mesh& a, const Mesh& b) {
          a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group;
 }
 
-// The first |n| vertices' positions of |a| and |b| as sorted lists of
-// triples: equal bit for bit when they hold the same points, numbered in
-// any order.
+// The first |n| vertices' positions of |m| as a sorted list of triples:
+// equal, bit for bit, for two meshes whose first |n| vertices are the same
+// points numbered in any order.
 std::vector<std::array<float, 3>> sorted_points(const Mesh& m, int32_t n) {
   std::vector<std::array<float, 3>> p(static_cast<size_t>(n));
   for (int32_t v = 0; v < n; ++v) p[v] = {m.positions[3 * size_t(v)], m.positions[3 * size_t(v) + 1], m.positions[3 * size_t(v) + 2]};
