@@ -55,6 +55,16 @@ inline unsigned equal_mask8(const int32_t* p, int32_t x, int n) {
 #endif
 }
 
+// Each edge's canonical corner: c with opposite[c] < 0 or c < opposite[c]
+// (one unsigned comparison, a boundary's -1 being the largest). Over the
+// corners [begin, end): how many (count_canonical_corners), or the list of
+// them in order into |out|, which has room for end - begin
+// (list_canonical_corners, returns how many). |wide|: 16 corners at a time
+// where the processor has AVX-512; false: one at a time, for tests (the same
+// answers).
+int64_t count_canonical_corners(const int32_t* opposite, int64_t begin, int64_t end, bool wide = true);
+int64_t list_canonical_corners(const int32_t* opposite, int64_t begin, int64_t end, int32_t* out, bool wide = true);
+
 struct TopologyReport {
   int64_t boundary_edges = 0;         // edges with one face after cutting
   int64_t non_manifold_edges = 0;     // undirected edges used by 3+ faces (each cut)

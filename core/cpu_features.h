@@ -7,18 +7,19 @@ namespace iteas {
 
 #if defined(__GNUC__) && defined(__x86_64__)
 #define ITEAS_X86_FEATURES 1
-enum class CpuFeature { kAvx, kAvx2 };
+enum class CpuFeature { kAvx, kAvx2, kAvx512 };
 // Asked once, on first use (__builtin_cpu_init: safe even before the libgcc
 // constructor that would set the answers up has run).
 inline bool cpu_has(CpuFeature f) {
   struct Answers {
-    bool avx, avx2;
+    bool avx, avx2, avx512;
   };
   static const Answers yes = [] {
     __builtin_cpu_init();
-    return Answers{__builtin_cpu_supports("avx") != 0, __builtin_cpu_supports("avx2") != 0};
+    return Answers{__builtin_cpu_supports("avx") != 0, __builtin_cpu_supports("avx2") != 0,
+                   __builtin_cpu_supports("avx512f") != 0};
   }();
-  return f == CpuFeature::kAvx ? yes.avx : yes.avx2;
+  return f == CpuFeature::kAvx ? yes.avx : (f == CpuFeature::kAvx2 ? yes.avx2 : yes.avx512);
 }
 #else
 #define ITEAS_X86_FEATURES 0

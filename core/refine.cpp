@@ -270,7 +270,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       int64_t ne = 0, nw = 0;
       const int64_t begin = k * kChunk, end = std::min(nc, (k + 1) * kChunk);
       if (!wedges) {
-        for (int64_t c = begin; c < end; ++c) ne += canonical(c);
+        ne = count_canonical_corners(opp, begin, end);
       } else {
         for (int64_t c = begin; c < end; ++c) {
           if (!canonical(c)) continue;
@@ -315,11 +315,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     Array<int32_t> list(kChunk);
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
-      int64_t n = 0;
-      for (int64_t c = k * kChunk, end = std::min(nc, (k + 1) * kChunk); c < end; ++c) {
-        list[n] = int32_t(c);  // kept only when canonical (no branch)
-        n += canonical(c);
-      }
+      const int64_t n = list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data());
       const int32_t first = int32_t(nv + edges_in[k]);
       apply_stencils(m, s.bctx, list.data(), n, first, terms);
       // Raw pointers: the byte stores below may alias anything, which would

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <mutex>
+#include <random>
 #include <stdexcept>
 #include <thread>
 
@@ -135,6 +136,54 @@ TEST(CornerTable, TheSameTableWithAndWithoutAvx2) {
     }
   }
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 5u : 40u);
+}
+
+// Canonical corners counted and listed 16 at a time (AVX-512) against the
+// definition, one corner at a time, on every mesh's table and on made-up
+// opposites (boundaries, twins before and after, the largest corner
+// numbers), over ranges that start and end anywhere in a 16-corner block.
+TEST(CornerTable, CanonicalCornersWithAndWithoutAvx512) {
+#if ITEAS_X86_FEATURES
+  if (!cpu_has(CpuFeature::kAvx512)) GTEST_SKIP() << "no AVX-512: both ways would take one corner at a time";
+#else
+  GTEST_SKIP() << "not x86-64: one corner at a time only";
+#endif
+  std::vector<std::vector<int32_t>> tables;
+  for (const test::NamedMesh& c : test::valid_meshes(100000, 1)) {
+    Mesh m = c.mesh;
+    CornerTable ct;
+    ct.build(m, false);
+    tables.emplace_back(ct.opposites().begin(), ct.opposites().end());
+  }
+  std::mt19937 rng(7);
+  std::vector<int32_t> made(5000);
+  for (size_t c = 0; c < made.size(); ++c) {
+    const uint32_t r = rng() % 4;
+    made[c] = r == 0 ? -1 : int32_t(r == 1 ? rng() % made.size() : (r == 2 ? c : made.size() - 1 - c % 7));
+  }
+  tables.push_back(made);
+  for (const std::vector<int32_t>& opp : tables) {
+    const int64_t nc = int64_t(opp.size());
+    std::vector<int32_t> wide(static_cast<size_t>(nc)), narrow(static_cast<size_t>(nc));
+    for (int64_t begin : {int64_t(0), int64_t(1), int64_t(15), int64_t(17), nc / 3}) {
+      for (int64_t end : {nc, nc - 1, nc - 16, begin + 31, begin + 3, begin}) {
+        if (begin > end || end > nc || begin > nc) continue;
+        SCOPED_TRACE(testing::Message() << "corners " << begin << ".." << end << " of " << nc);
+        std::vector<int32_t> expected;
+        for (int64_t c = begin; c < end; ++c)
+          if (opp[c] < 0 || c < opp[c]) expected.push_back(int32_t(c));
+        EXPECT_EQ(count_canonical_corners(opp.data(), begin, end, true), int64_t(expected.size()));
+        EXPECT_EQ(count_canonical_corners(opp.data(), begin, end, false), int64_t(expected.size()));
+        const int64_t nw = list_canonical_corners(opp.data(), begin, end, wide.data(), true);
+        const int64_t nn = list_canonical_corners(opp.data(), begin, end, narrow.data(), false);
+        ASSERT_EQ(nw, int64_t(expected.size()));
+        ASSERT_EQ(nn, int64_t(expected.size()));
+        EXPECT_EQ(std::vector<int32_t>(wide.begin(), wide.begin() + nw), expected);
+        EXPECT_EQ(std::vector<int32_t>(narrow.begin(), narrow.begin() + nn), expected);
+      }
+    }
+  }
+  EXPECT_GE(tables.size(), test::corpus_dir().empty() ? 6u : 40u);
 }
 
 // CornerTable::update against a build from scratch, over three rounds of
