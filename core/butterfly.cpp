@@ -78,6 +78,72 @@ namespace {
 void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads, bool wide);
 }  // namespace
 
+namespace {
+// Where each vertex below |limit| starts its ring in the ring table: -1 for
+// a vertex without one (not complete, regular, valence under 3, or without a
+// corner: then |unringed|), else the valences of the ringed vertices before
+// it summed. Returns the entries of all rings.
+int64_t ring_offsets_narrow(const VertexClass& vclass, const int32_t* vertex_corner, int32_t begin, int32_t limit,
+                            int64_t total, int32_t* offset, bool& unringed) {
+  for (int32_t v = begin; v < limit; ++v) {
+    const int32_t k = vclass.valence[v];
+    offset[v] = -1;
+    if (!vclass.complete[v] || k == 6 || k < 3) continue;
+    if (vertex_corner[v] < 0) { unringed = true; continue; }
+    offset[v] = int32_t(total);
+    total += k;
+  }
+  return total;
+}
+
+#if ITEAS_X86_FEATURES
+// ring_offsets_narrow sixteen vertices at a time: the ringed vertices'
+// valences summed across the register in four shifted adds (a prefix sum),
+// the offsets stored whole. The vertices past the last full sixteen one at a time.
+__attribute__((target("avx512f"))) int64_t ring_offsets_avx512(const VertexClass& vclass,
+                                                                const int32_t* vertex_corner, int32_t limit,
+                                                                int32_t* offset, bool& unringed) {
+  int64_t total = 0;
+  int32_t v = 0;
+  const __m512i zero = _mm512_setzero_si512(), minus_one = _mm512_set1_epi32(-1);
+  const __m512i three = _mm512_set1_epi32(3), six = _mm512_set1_epi32(6);
+  __mmask16 missing = 0;
+  for (; v + 16 <= limit; v += 16) {
+    const __m512i k = _mm512_loadu_si512(vclass.valence.data() + v);
+    const __m512i complete =
+        _mm512_maskz_cvtepu8_epi32(0xFFFF, _mm_loadu_si128(reinterpret_cast<const __m128i*>(vclass.complete.data() + v)));
+    const __m512i corner = _mm512_loadu_si512(vertex_corner + v);
+    const __mmask16 ring = _mm512_test_epi32_mask(complete, complete) & _mm512_cmpneq_epi32_mask(k, six) &
+                           _mm512_cmpge_epi32_mask(k, three);
+    const __mmask16 no_corner = _mm512_cmplt_epi32_mask(corner, zero);
+    missing |= ring & no_corner;
+    const __mmask16 take = ring & ~no_corner;
+    const __m512i x = _mm512_maskz_mov_epi32(take, k);
+    __m512i sum = _mm512_add_epi32(x, _mm512_maskz_alignr_epi32(0xFFFF, x, zero, 15));  // lane i: x[i] + x[i - 1]
+    sum = _mm512_add_epi32(sum, _mm512_maskz_alignr_epi32(0xFFFF, sum, zero, 14));
+    sum = _mm512_add_epi32(sum, _mm512_maskz_alignr_epi32(0xFFFF, sum, zero, 12));
+    sum = _mm512_add_epi32(sum, _mm512_maskz_alignr_epi32(0xFFFF, sum, zero, 8));  // inclusive prefix sums
+    const __m512i before = _mm512_sub_epi32(sum, x);
+    _mm512_storeu_si512(offset + v,
+                        _mm512_mask_add_epi32(minus_one, take, _mm512_set1_epi32(int32_t(total)), before));
+    total += _mm512_cvtsi512_si32(_mm512_maskz_permutexvar_epi32(1, _mm512_set1_epi32(15), sum));
+  }
+  if (missing) unringed = true;
+  return ring_offsets_narrow(vclass, vertex_corner, v, limit, total, offset, unringed);
+}
+#endif
+
+// ring_offsets_narrow for every vertex below |limit|, sixteen at a time where
+// |wide| and the processor has AVX-512 (the same offsets).
+int64_t ring_offsets(const VertexClass& vclass, const int32_t* vertex_corner, int32_t limit, int32_t* offset,
+                     bool& unringed, bool wide) {
+#if ITEAS_X86_FEATURES
+  if (wide && cpu_has(CpuFeature::kAvx512)) return ring_offsets_avx512(vclass, vertex_corner, limit, offset, unringed);
+#endif
+  return ring_offsets_narrow(vclass, vertex_corner, 0, limit, 0, offset, unringed);
+}
+}  // namespace
+
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads, bool wide_sums, bool slots) {
   const int32_t* cv = mesh.corner_vertex.data();
@@ -95,21 +161,15 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     ring_points(mesh, vclass, out, threads, wide_sums);
     return;
   }
-  limit = std::min(limit, mesh.num_vertices());
-  out.offset.assign(size_t(std::max(limit, 0)), -1);
-  int64_t total = 0;
+  limit = std::max(std::min(limit, mesh.num_vertices()), 0);
+  out.offset.resize(size_t(limit));  // every entry written by ring_offsets
   // A complete extraordinary vertex without a ring: at or above the limit
   // (uniform levels make none), or below it without a fan.
   bool unringed = false;
-  for (size_t v = size_t(std::max(limit, 0)); v < vclass.complete.size(); ++v)
+  for (size_t v = size_t(limit); v < vclass.complete.size(); ++v)
     unringed |= vclass.complete[v] == VertexClass::kComplete;
-  for (int32_t v = 0; v < limit; ++v) {
-    const int32_t k = vclass.valence[v];
-    if (!vclass.complete[v] || k == 6 || k < 3) continue;
-    if (ct.vertex_corner(v) < 0) { unringed = true; continue; }
-    out.offset[v] = int32_t(total);
-    total += k;
-  }
+  const int64_t total = ring_offsets(vclass, ct.vertex_corners().data(), limit, out.offset.data(), unringed,
+                                     wide_sums);
   out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
   // Slots where the rings are dense: written with the rings, each corner at

@@ -139,6 +139,7 @@ class CornerTable {
   Array<int32_t>& opposites() { return opposite_; }
   const Array<int32_t>& opposites() const { return opposite_; }
   std::vector<int32_t>& vertex_corners() { return vertex_corner_; }
+  const std::vector<int32_t>& vertex_corners() const { return vertex_corner_; }
 
  private:
   Array<int32_t> opposite_;

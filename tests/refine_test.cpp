@@ -340,8 +340,12 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
     build_rings(m, l.ct, ctx.vclass, m.num_vertices(), rings, 2);
     for (int32_t off : rings.offset) ringed += off >= 0;
     // The rule points summed with AVX (where the processor has it) and
-    // with SSE2 alone: the same bits.
+    // with SSE2 alone: the same bits; the rings' offsets (AVX-512) the same.
     build_rings(m, l.ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide_sums=*/false);
+    EXPECT_EQ(rings.offset, narrow.offset) << name;
+    EXPECT_EQ(rings.complete, narrow.complete) << name;
+    ASSERT_EQ(rings.corner.size(), narrow.corner.size()) << name;
+    EXPECT_TRUE(std::equal(rings.corner.begin(), rings.corner.end(), narrow.corner.begin())) << name;
     ASSERT_EQ(rings.point.size(), narrow.point.size());
     EXPECT_EQ(std::memcmp(rings.point.data(), narrow.point.data(), rings.point.size() * sizeof(float)), 0) << name;
     std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
