@@ -9,7 +9,12 @@
 #include <unordered_map>
 
 #include "core/butterfly.h"
+#include "core/cpu_features.h"
 #include "core/parallel.h"
+
+#if ITEAS_X86_FEATURES
+#include <immintrin.h>
+#endif
 
 namespace iteas {
 namespace {
@@ -235,6 +240,49 @@ void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   if (std::none_of(s.green.begin(), s.green.end(), [](uint8_t g) { return g != 0; })) s.bctx.green = &s.no_flags;
 }
 
+#if ITEAS_X86_FEATURES
+// The children's corners of faces [b, e) of a uniform level (see
+// uniform_level) four faces at a time: their twelve corners and twelve edge
+// points (|evert| at each edge's canonical corner, the smaller of the corner
+// and its opposite, unsigned) in two registers, the children's 48 corners
+// picked from them by three fixed permutations. Returns the first face left
+// to the caller (the last ones, whose 16-corner loads would run past the arrays).
+struct ChildPick {
+  alignas(64) int32_t idx[3][16];
+  constexpr ChildPick() : idx() {
+    // Child corner j of a face: the parent's corner j / 4 at j = 0, 4, 8,
+    // else the edge point m_k (16 + the face's corner k in the second register).
+    constexpr int kEdge[12] = {-1, 2, 1, 2, -1, 0, 1, 0, -1, 0, 1, 2};
+    for (int i = 0; i < 48; ++i) {
+      const int t = i / 12, j = i % 12;
+      idx[i / 16][i % 16] = kEdge[j] < 0 ? 3 * t + j / 4 : 16 + 3 * t + kEdge[j];
+    }
+  }
+};
+constexpr ChildPick kChildPick;
+
+__attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, const int32_t* opp,
+                                                            const int32_t* evert, int64_t b, int64_t e, int64_t nc,
+                                                            int32_t* ccv) {
+  const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  const __m512i pick0 = _mm512_load_si512(kChildPick.idx[0]), pick1 = _mm512_load_si512(kChildPick.idx[1]),
+                pick2 = _mm512_load_si512(kChildPick.idx[2]);
+  int64_t f = b;
+  for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
+    const int64_t p = 3 * f;
+    const __m512i corners = _mm512_loadu_si512(pcv + p);
+    const __m512i edge = _mm512_maskz_min_epu32(0xFFFF, _mm512_add_epi32(_mm512_set1_epi32(int32_t(p)), lane),
+                                          _mm512_loadu_si512(opp + p));
+    const __m512i m = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), 0x0FFF, edge, evert, 4);
+    int32_t* out = ccv + 4 * p;
+    _mm512_storeu_si512(out, _mm512_permutex2var_epi32(corners, pick0, m));
+    _mm512_storeu_si512(out + 16, _mm512_permutex2var_epi32(corners, pick1, m));
+    _mm512_storeu_si512(out + 32, _mm512_permutex2var_epi32(corners, pick2, m));
+  }
+  return f;
+}
+#endif
+
 // ---------------------------------------------------------------------------
 // Uniform level: every edge splits. Connectivity of the children, including
 // their opposites, follows from the parent's by index arithmetic, so no
@@ -270,7 +318,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       int64_t ne = 0, nw = 0;
       const int64_t begin = k * kChunk, end = std::min(nc, (k + 1) * kChunk);
       if (!wedges) {
-        ne = count_canonical_corners(opp, begin, end);
+        ne = count_canonical_corners(opp, begin, end, s.bctx.wide_sums);
       } else {
         for (int64_t c = begin; c < end; ++c) {
           if (!canonical(c)) continue;
@@ -315,7 +363,8 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     Array<int32_t> list(kChunk);
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
-      const int64_t n = list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data());
+      const int64_t n =
+          list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.bctx.wide_sums);
       const int32_t first = int32_t(nv + edges_in[k]);
       apply_stencils(m, s.bctx, list.data(), n, first, terms);
       // Raw pointers: the byte stores below may alias anything, which would
@@ -381,7 +430,12 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
     int32_t* ccv = cv.data();
     int32_t* ccw = cw.data();
-    for (int64_t f = b; f < e; ++f) {
+    int64_t from = b;
+#if ITEAS_X86_FEATURES
+    if (!wedges && fg.empty() && s.bctx.wide_sums && cpu_has(CpuFeature::kAvx512))
+      from = children_avx512(pcv, opp, evert.data(), b, e, nc, ccv);
+#endif
+    for (int64_t f = from; f < e; ++f) {
       const size_t p = 3 * size_t(f), q = 12 * size_t(f);
       const int32_t m0 = evert[edge_of(p)], m1 = evert[edge_of(p + 1)], m2 = evert[edge_of(p + 2)];
       // Child j keeps vertex j; the centre child is (m0, m1, m2).
@@ -895,7 +949,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   ls.vertices_added = next_v - nv;
   // Only the corners round changed faces are matched again; the rest of the
   // table is renumbered (the same table as a full build, which a test checks).
-  if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads))) s.ct.build(m, false, s.threads);
+  if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads))) s.ct.build(m, false, s.threads, false, s.bctx.wide_sums);
 }
 
 // ---------------------------------------------------------------------------
@@ -1240,7 +1294,9 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();
   // The uniform path reads its first rings from the fans the table records.
-  stats.topology = s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path);
+  s.bctx.wide_sums = hooks.wide;
+  stats.topology =
+      s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, hooks.wide);
   s.ring_limit = m.num_vertices();
   s.input_split = stats.topology.split_vertices > 0;
   s.carry = hooks.carry;

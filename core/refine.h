@@ -80,6 +80,9 @@ struct RefineHooks {
   // (see order_faces_spatially; the output is then the same mesh numbered
   // as the input is).
   bool spatial_order = true;
+  // Testing: false takes the baseline x86-64 (SSE2) routines where the
+  // processor has wider ones (AVX, AVX2, AVX-512); the output is the same.
+  bool wide = true;
 };
 
 enum class RefineResult { kOk, kCancelled };

@@ -698,6 +698,33 @@ TEST(Refine, StatisticsOffGivesTheSameMesh) {
   EXPECT_GE(n, 20);
 }
 
+// The routines for wider registers (AVX sums, AVX2 edge matching, AVX-512
+// canonical corners, ring offsets and children) against the baseline ones:
+// the same mesh, bit for bit, in both modes, on one and two threads. Meshes
+// without attributes or groups take every wide routine of a uniform level.
+TEST(Refine, WideRoutinesGiveTheSameMesh) {
+  int n = 0, plain = 0;
+  for (const Case& c : cases(30000)) {
+    plain += c.mesh.channels.empty() &&
+             std::all_of(c.mesh.face_group.begin(), c.mesh.face_group.end(), [](int32_t g) { return g == 0; });
+    for (const Mode mode : {Mode::kUniform, Mode::kIteas}) {
+      for (const int threads : {1, 2}) {
+        const int levels = mode == Mode::kUniform && c.mesh.num_faces() < 4096 ? 3 : 2;
+        Mesh wide = c.mesh, narrow = c.mesh;
+        RefineStats st_wide, st_narrow;
+        RefineHooks h;
+        refine_mesh(wide, opts(mode, levels, threads), h, &st_wide);
+        h.wide = false;
+        refine_mesh(narrow, opts(mode, levels, threads), h, &st_narrow);
+        EXPECT_TRUE(same_mesh(wide, narrow)) << c.name << " " << mode_name(mode) << " " << threads;
+        ++n;
+      }
+    }
+  }
+  EXPECT_GE(n, 20);
+  EXPECT_GE(plain, 1);
+}
+
 // Adaptive levels carry the angles and deviations of edges no changed face
 // touches; the result must be what computing them again gives, bit for bit,
 // with every option that feeds the stencils (creases, tension, greens kept
