@@ -281,6 +281,67 @@ __attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, c
   }
   return f;
 }
+// The children's opposites of faces [b, e) of a uniform level (see
+// uniform_level) four faces at a time: each corner's opposite d as 12 (d / 3)
+// plus the child corner its half-edges land on (a table by d mod 3), -1 at
+// the boundary; the 48 opposites picked from those two registers by three
+// fixed permutations, the inner edges' (the face's own children) blended
+// in. Returns the first face left to the caller.
+struct OppositePick {
+  alignas(64) int32_t idx[3][16];    // from A (0-15) or C (16-31): see kOppositeOf
+  alignas(64) int32_t inner[3][16];  // 12 t + the inner corner where |inner_mask| is set
+  uint16_t inner_mask[3];
+  constexpr OppositePick() : idx(), inner(), inner_mask() {
+    // Child corner j of a face: the inner edge's corner (>= 0), else -1 - k
+    // for the first half (A) or -4 - k for the second half (C) of the parent
+    // edge opposite corner k.
+    constexpr int kOppositeOf[12] = {9, -4 - 1, -1 - 2, -1 - 0, 10, -4 - 2, -4 - 0, -1 - 1, 11, 0, 4, 8};
+    for (int i = 0; i < 48; ++i) {
+      const int t = i / 12, j = i % 12, o = kOppositeOf[j];
+      if (o >= 0) {
+        inner[i / 16][i % 16] = 12 * t + o;
+        inner_mask[i / 16] = uint16_t(inner_mask[i / 16] | (1u << (i % 16)));
+      } else {
+        idx[i / 16][i % 16] = o >= -3 ? 3 * t + (-1 - o) : 16 + 3 * t + (-4 - o);
+      }
+    }
+  }
+};
+constexpr OppositePick kOppositePick;
+
+__attribute__((target("avx512f"))) int64_t child_opposites_avx512(const int32_t* opp, int64_t b, int64_t e,
+                                                                   int64_t nc, int32_t* no) {
+  // 3 kPrev[l] + l and 3 kNext[l] + l for l = d mod 3 (uniform_level's tables).
+  const __m512i first_half = _mm512_setr_epi32(6, 1, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+  const __m512i second_half = _mm512_setr_epi32(3, 7, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+  const __m512i magic = _mm512_set1_epi32(int32_t(0xAAAAAAABu)), zero = _mm512_setzero_si512();
+  const __m512i minus_one = _mm512_set1_epi32(-1);
+  int64_t f = b;
+  for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
+    const __m512i d = _mm512_loadu_si512(opp + 3 * f);
+    const __mmask16 boundary = _mm512_cmplt_epi32_mask(d, zero);
+    // d / 3 from the high half of d * 0xAAAAAAAB (>> 33), even and odd lanes.
+    const __m512i q_even = _mm512_maskz_srli_epi64(0xFF, _mm512_maskz_mul_epu32(0xFF, d, magic), 33);
+    const __m512i q_odd = _mm512_maskz_srli_epi64(
+        0xFF, _mm512_maskz_mul_epu32(0xFF, _mm512_maskz_srli_epi64(0xFF, d, 32), magic), 33);
+    const __m512i q = _mm512_mask_blend_epi32(0xAAAA, q_even, _mm512_maskz_slli_epi64(0xFF, q_odd, 32));
+    const __m512i l = _mm512_sub_epi32(d, _mm512_mullo_epi32(q, _mm512_set1_epi32(3)));
+    const __m512i g12 = _mm512_mullo_epi32(q, _mm512_set1_epi32(12));
+    const __m512i a = _mm512_mask_mov_epi32(
+        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, first_half)), boundary, minus_one);
+    const __m512i c = _mm512_mask_mov_epi32(
+        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, second_half)), boundary, minus_one);
+    const __m512i base = _mm512_set1_epi32(int32_t(12 * f));
+    int32_t* out = no + 12 * f;
+    for (int z = 0; z < 3; ++z) {
+      const __m512i picked =
+          _mm512_permutex2var_epi32(a, _mm512_load_si512(kOppositePick.idx[z]), c);
+      const __m512i inner = _mm512_add_epi32(base, _mm512_load_si512(kOppositePick.inner[z]));
+      _mm512_storeu_si512(out + 16 * z, _mm512_mask_blend_epi32(kOppositePick.inner_mask[z], picked, inner));
+    }
+  }
+  return f;
+}
 #endif
 
 // ---------------------------------------------------------------------------
@@ -476,7 +537,11 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   static constexpr int kNext[3] = {1, 2, 0}, kPrev[3] = {2, 0, 1};
   if (connectivity) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
     int32_t* no = nopp.data();
-    for (int64_t f = b; f < e; ++f) {
+    int64_t from = b;
+#if ITEAS_X86_FEATURES
+    if (s.bctx.wide_sums && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
+#endif
+    for (int64_t f = from; f < e; ++f) {
       const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
       for (int k = 0; k < 3; ++k) {
         // Inner edges: child k's corner k faces the centre's corner k.
