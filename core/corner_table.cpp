@@ -524,62 +524,49 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
 
 #if ITEAS_X86_FEATURES
 namespace {
-// count_canonical_corners and list_canonical_corners sixteen corners at a time: one
-// unsigned compare of the opposites against the corners' own numbers, its
-// mask counted, or the corners it keeps packed to the front of a register
-// (stored whole: the lanes past the kept ones are overwritten later or lie
-// in the list's spare room).
-__attribute__((target("avx512f"))) int64_t count_canonical_corners_avx512(const int32_t* opp, int64_t begin, int64_t end) {
-  int64_t n = 0, c = begin;
+// count_canonical_corners (kList false) and list_canonical_corners over the
+// whole blocks of sixteen corners from |begin|: one unsigned compare of the
+// opposites against the corners' own numbers, its mask counted, and the
+// corners it keeps packed to the front of a register (stored whole: n <= c -
+// begin, so the lanes past the kept ones are overwritten later or lie in the
+// list's spare room). Adds to |n|; returns the first corner left.
+template <bool kList>
+__attribute__((target("avx512f"))) int64_t canonical_blocks_avx512(const int32_t* opp, int64_t begin, int64_t end,
+                                                                    int32_t* out, int64_t& n) {
   __m512i at = _mm512_add_epi32(_mm512_set1_epi32(int32_t(begin)),
                                 _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
   const __m512i sixteen = _mm512_set1_epi32(16);
+  int64_t c = begin;
   for (; c + 16 <= end; c += 16) {
-    const __m512i o = _mm512_loadu_si512(opp + c);
-    n += __builtin_popcount(_mm512_cmpgt_epu32_mask(o, at));
+    const __mmask16 canonical = _mm512_cmpgt_epu32_mask(_mm512_loadu_si512(opp + c), at);
+    if (kList) _mm512_storeu_si512(out + n, _mm512_maskz_compress_epi32(canonical, at));
+    n += __builtin_popcount(canonical);
     at = _mm512_add_epi32(at, sixteen);
   }
-  for (; c < end; ++c) n += uint32_t(opp[c]) > uint32_t(c);
-  return n;
-}
-__attribute__((target("avx512f"))) int64_t list_canonical_corners_avx512(const int32_t* opp, int64_t begin, int64_t end,
-                                                                       int32_t* out) {
-  int64_t n = 0, c = begin;
-  __m512i at = _mm512_add_epi32(_mm512_set1_epi32(int32_t(begin)),
-                                _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
-  const __m512i sixteen = _mm512_set1_epi32(16);
-  // n <= c - begin: the sixteen lanes stored at n fit in the room for end - begin.
-  for (; c + 16 <= end; c += 16) {
-    const __m512i o = _mm512_loadu_si512(opp + c);
-    const __mmask16 first = _mm512_cmpgt_epu32_mask(o, at);
-    _mm512_storeu_si512(out + n, _mm512_maskz_compress_epi32(first, at));
-    n += __builtin_popcount(first);
-    at = _mm512_add_epi32(at, sixteen);
-  }
-  for (; c < end; ++c) {
-    out[n] = int32_t(c);
-    n += uint32_t(opp[c]) > uint32_t(c);
-  }
-  return n;
+  return c;
 }
 }  // namespace
 #endif
 
 int64_t count_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, bool wide) {
+  int64_t n = 0, c = begin;
 #if ITEAS_X86_FEATURES
-  if (wide && cpu_has(CpuFeature::kAvx512)) return count_canonical_corners_avx512(opp, begin, end);
+  if (wide && cpu_has(CpuFeature::kAvx512)) c = canonical_blocks_avx512<false>(opp, begin, end, nullptr, n);
+#else
+  (void)wide;
 #endif
-  int64_t n = 0;
-  for (int64_t c = begin; c < end; ++c) n += uint32_t(opp[c]) > uint32_t(c);
+  for (; c < end; ++c) n += uint32_t(opp[c]) > uint32_t(c);
   return n;
 }
 
 int64_t list_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, int32_t* out, bool wide) {
+  int64_t n = 0, c = begin;
 #if ITEAS_X86_FEATURES
-  if (wide && cpu_has(CpuFeature::kAvx512)) return list_canonical_corners_avx512(opp, begin, end, out);
+  if (wide && cpu_has(CpuFeature::kAvx512)) c = canonical_blocks_avx512<true>(opp, begin, end, out, n);
+#else
+  (void)wide;
 #endif
-  int64_t n = 0;
-  for (int64_t c = begin; c < end; ++c) {
+  for (; c < end; ++c) {
     out[n] = int32_t(c);  // kept only when canonical (no branch)
     n += uint32_t(opp[c]) > uint32_t(c);
   }
