@@ -110,8 +110,8 @@ __attribute__((target("avx512f"))) int64_t ring_offsets_avx512(const VertexClass
   __mmask16 missing = 0;
   for (; v + 16 <= limit; v += 16) {
     const __m512i k = _mm512_loadu_si512(vclass.valence.data() + v);
-    const __m512i complete =
-        _mm512_maskz_cvtepu8_epi32(0xFFFF, _mm_loadu_si128(reinterpret_cast<const __m128i*>(vclass.complete.data() + v)));
+    const __m128i bytes = _mm_loadu_si128(reinterpret_cast<const __m128i*>(vclass.complete.data() + v));
+    const __m512i complete = _mm512_maskz_cvtepu8_epi32(0xFFFF, bytes);
     const __m512i corner = _mm512_loadu_si512(vertex_corner + v);
     const __mmask16 ring = _mm512_test_epi32_mask(complete, complete) & _mm512_cmpneq_epi32_mask(k, six) &
                            _mm512_cmpge_epi32_mask(k, three);

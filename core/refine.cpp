@@ -106,6 +106,9 @@ struct State {
   const std::vector<uint8_t> no_flags{};  // empty: no sharp flags, no green pairs (ButterflyContext)
   int32_t ring_limit = 0;
   int threads = 1;
+  // The routines for wider registers where the processor has them (false:
+  // the baseline ones, RefineHooks::wide); bctx.wide_sums follows it.
+  bool wide = true;
   int64_t peak = 0;
   // The uniform level derived sharp flags and vertex classes of the new level
   // by arithmetic (valid only without creases, which depend on geometry).
@@ -271,8 +274,8 @@ __attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, c
   for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
     const int64_t p = 3 * f;
     const __m512i corners = _mm512_loadu_si512(pcv + p);
-    const __m512i edge = _mm512_maskz_min_epu32(0xFFFF, _mm512_add_epi32(_mm512_set1_epi32(int32_t(p)), lane),
-                                          _mm512_loadu_si512(opp + p));
+    const __m512i corner = _mm512_add_epi32(_mm512_set1_epi32(int32_t(p)), lane);
+    const __m512i edge = _mm512_maskz_min_epu32(0xFFFF, corner, _mm512_loadu_si512(opp + p));
     const __m512i m = _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), 0x0FFF, edge, evert, 4);
     int32_t* out = ccv + 4 * p;
     _mm512_storeu_si512(out, _mm512_permutex2var_epi32(corners, pick0, m));
@@ -334,8 +337,7 @@ __attribute__((target("avx512f"))) int64_t child_opposites_avx512(const int32_t*
     const __m512i base = _mm512_set1_epi32(int32_t(12 * f));
     int32_t* out = no + 12 * f;
     for (int z = 0; z < 3; ++z) {
-      const __m512i picked =
-          _mm512_permutex2var_epi32(a, _mm512_load_si512(kOppositePick.idx[z]), c);
+      const __m512i picked = _mm512_permutex2var_epi32(a, _mm512_load_si512(kOppositePick.idx[z]), c);
       const __m512i inner = _mm512_add_epi32(base, _mm512_load_si512(kOppositePick.inner[z]));
       _mm512_storeu_si512(out + 16 * z, _mm512_mask_blend_epi32(kOppositePick.inner_mask[z], picked, inner));
     }
@@ -379,7 +381,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       int64_t ne = 0, nw = 0;
       const int64_t begin = k * kChunk, end = std::min(nc, (k + 1) * kChunk);
       if (!wedges) {
-        ne = count_canonical_corners(opp, begin, end, s.bctx.wide_sums);
+        ne = count_canonical_corners(opp, begin, end, s.wide);
       } else {
         for (int64_t c = begin; c < end; ++c) {
           if (!canonical(c)) continue;
@@ -425,7 +427,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
       const int64_t n =
-          list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.bctx.wide_sums);
+          list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.wide);
       const int32_t first = int32_t(nv + edges_in[k]);
       apply_stencils(m, s.bctx, list.data(), n, first, terms);
       // Raw pointers: the byte stores below may alias anything, which would
@@ -493,7 +495,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     int32_t* ccw = cw.data();
     int64_t from = b;
 #if ITEAS_X86_FEATURES
-    if (!wedges && fg.empty() && s.bctx.wide_sums && cpu_has(CpuFeature::kAvx512))
+    if (!wedges && fg.empty() && s.wide && cpu_has(CpuFeature::kAvx512))
       from = children_avx512(pcv, opp, evert.data(), b, e, nc, ccv);
 #endif
     for (int64_t f = from; f < e; ++f) {
@@ -539,7 +541,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     int32_t* no = nopp.data();
     int64_t from = b;
 #if ITEAS_X86_FEATURES
-    if (s.bctx.wide_sums && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
+    if (s.wide && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
 #endif
     for (int64_t f = from; f < e; ++f) {
       const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
@@ -1014,7 +1016,8 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   ls.vertices_added = next_v - nv;
   // Only the corners round changed faces are matched again; the rest of the
   // table is renumbered (the same table as a full build, which a test checks).
-  if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads))) s.ct.build(m, false, s.threads, false, s.bctx.wide_sums);
+  if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads)))
+    s.ct.build(m, false, s.threads, false, s.wide);
 }
 
 // ---------------------------------------------------------------------------
@@ -1359,7 +1362,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();
   // The uniform path reads its first rings from the fans the table records.
-  s.bctx.wide_sums = hooks.wide;
+  s.wide = s.bctx.wide_sums = hooks.wide;
   stats.topology =
       s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, hooks.wide);
   s.ring_limit = m.num_vertices();

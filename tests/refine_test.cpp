@@ -699,9 +699,10 @@ TEST(Refine, StatisticsOffGivesTheSameMesh) {
 }
 
 // The routines for wider registers (AVX sums, AVX2 edge matching, AVX-512
-// canonical corners, ring offsets and children) against the baseline ones:
-// the same mesh, bit for bit, in both modes, on one and two threads. Meshes
-// without attributes or groups take every wide routine of a uniform level.
+// canonical corners, ring offsets, children and their opposites) against the
+// baseline ones: the same mesh, bit for bit, in both modes, on one and two
+// threads. Meshes without attributes or groups take every wide routine of a
+// uniform level.
 TEST(Refine, WideRoutinesGiveTheSameMesh) {
   int n = 0, plain = 0;
   for (const Case& c : cases(30000)) {
