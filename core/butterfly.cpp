@@ -145,7 +145,7 @@ int64_t ring_offsets(const VertexClass& vclass, const int32_t* vertex_corner, in
 }  // namespace
 
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads, bool wide_sums, bool slots) {
+                 int threads, bool wide, bool slots) {
   const int32_t* cv = mesh.corner_vertex.data();
   if (out.carried) {
     out.carried = false;
@@ -158,7 +158,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
         if (slot && x >= 0) slot[x] = int32_t(i);
       }
     });
-    ring_points(mesh, vclass, out, threads, wide_sums);
+    ring_points(mesh, vclass, out, threads, wide);
     return;
   }
   limit = std::max(std::min(limit, mesh.num_vertices()), 0);
@@ -168,8 +168,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   bool unringed = false;
   for (size_t v = size_t(limit); v < vclass.complete.size(); ++v)
     unringed |= vclass.complete[v] == VertexClass::kComplete;
-  const int64_t total = ring_offsets(vclass, ct.vertex_corners().data(), limit, out.offset.data(), unringed,
-                                     wide_sums);
+  const int64_t total = ring_offsets(vclass, ct.vertex_corners().data(), limit, out.offset.data(), unringed, wide);
   out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
   out.neighbour.resize(size_t(total));
   // Slots where the rings are dense: written with the rings, each corner at
@@ -213,7 +212,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     out.complete = false;
     Array<int32_t>().swap(out.slot);
   }
-  ring_points(mesh, vclass, out, threads, wide_sums);
+  ring_points(mesh, vclass, out, threads, wide);
 }
 
 void carry_rings(RingTable& rings, int threads) {
@@ -1024,7 +1023,7 @@ void butterfly_points(const ButterflyContext& ctx, const int32_t* corners, int64
   if (plain_stencils(ctx)) {
     const View<false> view(ctx);
 #if ITEAS_AVX_SUM
-    if (ctx.wide_sums && cpu_has(CpuFeature::kAvx)) {
+    if (ctx.wide && cpu_has(CpuFeature::kAvx)) {
       plain_points_avx(view, corners, count, positions, out);
       return;
     }

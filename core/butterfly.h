@@ -82,10 +82,12 @@ struct ButterflyContext {
   // Optional (null: walk the fans); valid only for the level and positions it
   // was built on, and never used with green pairs.
   const RingTable* rings = nullptr;
-  // Regular stencils summed with AVX where the processor has it (the same
-  // bits as SSE2, fewer instructions); false: SSE2 only, for tests. The
-  // refinement hands it on to build_rings for the rings' points.
-  bool wide_sums = true;
+  // The routines for wider registers where the processor has them: regular
+  // stencils and rule points summed with AVX (the same bits as SSE2, fewer
+  // instructions), the rings' offsets with AVX-512, and the uniform level's
+  // loops that read it (refine.cpp); false: the baseline ones, for tests.
+  // The refinement hands it on to build_rings.
+  bool wide = true;
 };
 
 // Removes the bisecting edges of green pairs from the apex valences.
@@ -106,11 +108,11 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 // Rings of the extraordinary vertices below |limit| on the current level:
 // carried over from the level before (|out|.carried), else read from the fans
 // the corner table recorded (CornerTable::fan_order), else walked.
-// |wide_sums| as in ButterflyContext (false: SSE2 only, for tests).
+// |wide| as in ButterflyContext (false: the baseline routines, for tests).
 // |slots|: make RingTable::slot where it applies; false when only the
 // general path will read the rings (creases or tension), which never reads them.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads = 1, bool wide_sums = true, bool slots = true);
+                 int threads = 1, bool wide = true, bool slots = true);
 
 // After a uniform split of this level (children of face f are 4f..4f+3, child
 // k keeping corner k): keeps only the rings' corners, moved to the children,

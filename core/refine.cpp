@@ -106,9 +106,6 @@ struct State {
   const std::vector<uint8_t> no_flags{};  // empty: no sharp flags, no green pairs (ButterflyContext)
   int32_t ring_limit = 0;
   int threads = 1;
-  // The routines for wider registers where the processor has them (false:
-  // the baseline ones, RefineHooks::wide); bctx.wide_sums follows it.
-  bool wide = true;
   int64_t peak = 0;
   // The uniform level derived sharp flags and vertex classes of the new level
   // by arithmetic (valid only without creases, which depend on geometry).
@@ -381,7 +378,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       int64_t ne = 0, nw = 0;
       const int64_t begin = k * kChunk, end = std::min(nc, (k + 1) * kChunk);
       if (!wedges) {
-        ne = count_canonical_corners(opp, begin, end, s.wide);
+        ne = count_canonical_corners(opp, begin, end, s.bctx.wide);
       } else {
         for (int64_t c = begin; c < end; ++c) {
           if (!canonical(c)) continue;
@@ -407,7 +404,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   VertexClass& vclass = s.bctx.vclass;
   if (s.green.empty()) {
     // Slots only for the plain stencils' path (no creases, no tension).
-    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide_sums, plain_stencils(s.bctx));
+    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide, plain_stencils(s.bctx));
     s.bctx.rings = &s.rings;
   }
   s.ct.forget_fans();  // the arithmetic below changes the table
@@ -427,7 +424,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     std::vector<StencilTerm> terms;
     for (int64_t k = b; k < e; ++k) {
       const int64_t n =
-          list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.wide);
+          list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.bctx.wide);
       const int32_t first = int32_t(nv + edges_in[k]);
       apply_stencils(m, s.bctx, list.data(), n, first, terms);
       // Raw pointers: the byte stores below may alias anything, which would
@@ -495,7 +492,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     int32_t* ccw = cw.data();
     int64_t from = b;
 #if ITEAS_X86_FEATURES
-    if (!wedges && fg.empty() && s.wide && cpu_has(CpuFeature::kAvx512))
+    if (!wedges && fg.empty() && s.bctx.wide && cpu_has(CpuFeature::kAvx512))
       from = children_avx512(pcv, opp, evert.data(), b, e, nc, ccv);
 #endif
     for (int64_t f = from; f < e; ++f) {
@@ -541,7 +538,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     int32_t* no = nopp.data();
     int64_t from = b;
 #if ITEAS_X86_FEATURES
-    if (s.wide && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
+    if (s.bctx.wide && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
 #endif
     for (int64_t f = from; f < e; ++f) {
       const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
@@ -1017,7 +1014,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   // Only the corners round changed faces are matched again; the rest of the
   // table is renumbered (the same table as a full build, which a test checks).
   if (!(renumber && s.ct.update(m, carried.kept_from, carried.touched, s.threads)))
-    s.ct.build(m, false, s.threads, false, s.wide);
+    s.ct.build(m, false, s.threads, false, s.bctx.wide);
 }
 
 // ---------------------------------------------------------------------------
@@ -1362,9 +1359,9 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.triangles_in = m.num_faces();
   stats.vertices_in = m.wedge_count();
   // The uniform path reads its first rings from the fans the table records.
-  s.wide = s.bctx.wide_sums = hooks.wide;
+  s.bctx.wide = hooks.wide;
   stats.topology =
-      s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, hooks.wide);
+      s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, s.bctx.wide);
   s.ring_limit = m.num_vertices();
   s.input_split = stats.topology.split_vertices > 0;
   s.carry = hooks.carry;

@@ -341,7 +341,7 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
     for (int32_t off : rings.offset) ringed += off >= 0;
     // The rule points summed with AVX (where the processor has it) and
     // with SSE2 alone: the same bits; the rings' offsets (AVX-512) the same.
-    build_rings(m, l.ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide_sums=*/false);
+    build_rings(m, l.ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide=*/false);
     EXPECT_EQ(rings.offset, narrow.offset) << name;
     EXPECT_EQ(rings.complete, narrow.complete) << name;
     ASSERT_EQ(rings.corner.size(), narrow.corner.size()) << name;
@@ -391,7 +391,7 @@ TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), general.data());
     ctx.sharp = &none;
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), plain_wide.data());
-    ctx.wide_sums = false;
+    ctx.wide = false;
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), plain_sse.data());
     EXPECT_EQ(std::memcmp(general.data(), plain_wide.data(), n * sizeof(float)), 0) << name;
     EXPECT_EQ(std::memcmp(general.data(), plain_sse.data(), n * sizeof(float)), 0) << name;
@@ -404,7 +404,7 @@ TEST(Refine, PlainPathGivesTheGeneralPathsPoints) {
     ctx.rings = &rings;
     std::vector<float> ringed_wide(n), ringed_sse(n);
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), ringed_sse.data());
-    ctx.wide_sums = true;
+    ctx.wide = true;
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), l.mesh.positions.data(), ringed_wide.data());
     EXPECT_EQ(std::memcmp(general.data(), ringed_wide.data(), n * sizeof(float)), 0) << name;
     EXPECT_EQ(std::memcmp(general.data(), ringed_sse.data(), n * sizeof(float)), 0) << name;
@@ -444,7 +444,7 @@ TEST(Refine, RingSlotsNeedEveryCornerInItsRing) {
   ctx.sharp = &none;
   ctx.rings = &rings;
   for (bool wide : {true, false}) {
-    ctx.wide_sums = wide;
+    ctx.wide = wide;
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), plain.data());
     EXPECT_EQ(std::memcmp(general.data(), plain.data(), n * sizeof(float)), 0) << wide;
   }
