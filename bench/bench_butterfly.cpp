@@ -17,6 +17,9 @@
 // writes and the other reads then costs about three times as much. Far apart,
 // ours runs small work on one thread (core/parallel.h, threads_for), so the
 // two-thread columns of small rows then read about 1x.
+// A third table runs two jobs at once, one thread each, as the server does
+// (one thread per job, as many jobs as workers): what two CPUs give a stream
+// of jobs, beside what they give one job.
 // Each timed run follows an untimed run of the same configuration (the
 // same library, threads and statistics), the configurations alternating
 // from one repetition to the next: every figure is that of a process
@@ -265,6 +268,44 @@ int main(int argc, char** argv) {
     std::printf(" %.3f |", 1e3 * t2);
     for (auto& v : one) std::printf(" %.2fx |", median(v) / t2);
     std::printf(" %.2fx | %.0f |\n", mean / t2, median(trip));
+    std::fflush(stdout);
+  }
+
+  // Two jobs at once, one thread each, as the server runs them (one thread
+  // per job, as many jobs as workers), against one job alone and one job on
+  // two threads, without statistics. Jobs per second of the pair: 2 over
+  // the later of the two to finish, each timed run after an untimed one of
+  // its own and both timed runs started together.
+  std::printf("\n| mesh | level | one job, 1T ms | two jobs at once ms | two jobs at once vs one job (jobs/s) | "
+              "one job, 2T ms | one job 2T vs 1T |\n|---|---:|---:|---:|---:|---:|---:|\n");
+  for (const Case& c : cases) {
+    const iteas::Mesh input = load(c.path);
+    const int64_t out_tris = int64_t(input.num_faces()) << (2 * c.level);
+    const int reps = repetitions(out_tris);
+    std::vector<double> alone, pair, two;
+    for (int r = 0; r < reps; ++r) {
+      ours(input, c.level, 1, false);
+      alone.push_back(ours(input, c.level, 1, false).seconds);
+      std::atomic<int> ready{0};
+      double other = 0;
+      auto job = [&input, &c, &ready](double* out) {
+        ours(input, c.level, 1, false);
+        ready.fetch_add(1);
+        while (ready.load() < 2) {
+        }
+        *out = ours(input, c.level, 1, false).seconds;
+      };
+      std::thread second(job, &other);
+      double mine = 0;
+      job(&mine);
+      second.join();
+      pair.push_back(std::max(mine, other));
+      ours(input, c.level, 2, false);
+      two.push_back(ours(input, c.level, 2, false).seconds);
+    }
+    const double a = median(alone), p = median(pair), t = median(two);
+    std::printf("| %s | %d | %.3f | %.3f | %.2fx | %.3f | %.2fx |\n", c.name.c_str(), c.level, 1e3 * a, 1e3 * p,
+                2 * a / p, 1e3 * t, a / t);
     std::fflush(stdout);
   }
   return 0;
