@@ -48,6 +48,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (data[2] & 32) o.tolerance = o.flat_limit = 0.05;  // geometric tolerances in fixed mode too, coarse
   o.max_triangles = 20000;
   iteas::Mesh two = (data[2] & 16) ? m : iteas::Mesh();
+  iteas::Mesh narrow = (data[2] & 64) ? m : iteas::Mesh();
   iteas::RefineStats st;
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
   if (data[2] & 16) {
@@ -61,6 +62,21 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     iteas::refine_mesh(two, o, exact, &st2);
     if (two.positions.size() != m.positions.size() || two.corner_vertex != m.corner_vertex ||
         std::memcmp(two.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0)
+      __builtin_trap();
+  }
+  if (data[2] & 64) {
+    // Oracle: the baseline routines (SSE2) give the same mesh, bit for bit,
+    // as the wider ones the processor has (AVX sums, AVX2 matching, the
+    // AVX-512 loops of uniform levels: canonical corners, ring offsets,
+    // children and their opposites).
+    o.threads = 1;
+    iteas::RefineHooks baseline;
+    baseline.wide = false;
+    iteas::RefineStats st3;
+    iteas::refine_mesh(narrow, o, baseline, &st3);
+    if (narrow.positions.size() != m.positions.size() || narrow.corner_vertex != m.corner_vertex ||
+        std::memcmp(narrow.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0 ||
+        st3.triangles_out != st.triangles_out || st3.levels.size() != st.levels.size())
       __builtin_trap();
   }
   return 0;
