@@ -90,6 +90,15 @@ enum class RefineResult { kOk, kCancelled };
 RefineResult refine_mesh(Mesh& mesh, const RefineOptions& options, const RefineHooks& hooks,
                          RefineStats* stats);
 
+// The normal channel (the first of kind kNormal with 3 components, if the
+// mesh has wedges) recomputed from the faces, as refinement does after its
+// last level: each wedge takes the area-weighted sum of the face normals
+// over its smoothing group (the wedges of its vertex whose normals are the
+// same bit for bit: UV seams stay smooth, hard edges stay hard), summed in
+// face order and normalised; a group whose sum is zero keeps its own
+// normal, normalised.
+void recompute_normals(Mesh& mesh);
+
 // Bytes held by the mesh's arrays (capacity), for the memory statistics.
 int64_t mesh_bytes(const Mesh& mesh);
 

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <iterator>
 #include <cstring>
+#include <map>
 
 #include "core/butterfly.h"
 #include "core/corner_table.h"
@@ -871,6 +872,91 @@ TEST(Refine, DoubledTrianglesStayBounded) {
         ASSERT_LE(out.positions[3 * v + k], box.hi[k] + 0.1f * float(box.diagonal())) << "vertex " << v;
       }
   }
+}
+
+
+// Normals recomputed per smoothing group (recompute_normals, run after the
+// last level): two fans, one whose centre has 40 wedges (grouped by sorting)
+// and one whose centre has 9 (compared pairwise), the wedges' normals drawn
+// from a few values, repeated out of order, +0 and -0 told apart. The
+// reference groups by (vertex, normal bits) in a map and sums the faces'
+// cross products in face order, as the rule says; every normal must match
+// it bit for bit.
+TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
+  Mesh m;
+  Channel normal;
+  normal.name = "NORMAL";
+  normal.components = 3;
+  normal.kind = ChannelKind::kNormal;
+  const float choices[5][3] = {{0, 0, 1}, {0, 1, 0}, {1, 0, 0}, {0.6f, 0, 0.8f}, {-0.0f, 0, 1}};
+  auto add_fan = [&](float cx, int k) {
+    const int32_t centre = m.num_vertices();
+    for (float x : {cx, 0.0f, 0.0f}) m.positions.push_back(x);
+    for (int i = 0; i < k; ++i) {
+      const double a = 2 * M_PI * i / k;
+      m.positions.push_back(float(cx + std::cos(a)));
+      m.positions.push_back(float(std::sin(a)));
+      m.positions.push_back(float(0.3 * ((i * 7) % 5)));  // not coplanar
+    }
+    for (int i = 0; i < k; ++i) {
+      const int32_t f = m.num_faces();
+      const int32_t v[3] = {centre, centre + 1 + i, centre + 1 + (i + 1) % k};
+      for (int j = 0; j < 3; ++j) {
+        m.corner_vertex.push_back(v[j]);
+        m.corner_wedge.push_back(int32_t(m.wedge_vertex.size()));
+        m.wedge_vertex.push_back(v[j]);
+        // Centre wedges cycle through the values out of step with the faces;
+        // a ring vertex's two wedges agree on every third face.
+        const int c = j == 0 ? (i * 3) % 5 : (f % 3 == 0 ? 0 : (f + j) % 5);
+        for (int q = 0; q < 3; ++q) normal.data.push_back(choices[c][q]);
+      }
+    }
+  };
+  add_fan(0.0f, 40);
+  add_fan(5.0f, 9);
+  m.channels.push_back(normal);
+
+  // The reference.
+  const int32_t nw = m.num_wedges();
+  std::map<std::array<uint32_t, 4>, std::array<double, 3>> sums;
+  auto key = [&](int32_t w) {
+    std::array<uint32_t, 4> k{uint32_t(m.wedge_vertex[w]), 0, 0, 0};
+    std::memcpy(k.data() + 1, &normal.data[3 * size_t(w)], 12);
+    return k;
+  };
+  for (int32_t f = 0; f < m.num_faces(); ++f) {
+    const float* a = &m.positions[3 * size_t(m.corner_vertex[3 * f])];
+    const float* b = &m.positions[3 * size_t(m.corner_vertex[3 * f + 1])];
+    const float* c = &m.positions[3 * size_t(m.corner_vertex[3 * f + 2])];
+    const double u[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
+    const double v[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
+    const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
+    for (int k = 0; k < 3; ++k) {
+      std::array<double, 3>& acc = sums.try_emplace(key(m.corner_wedge[3 * f + k]), std::array<double, 3>{0, 0, 0})
+                                        .first->second;
+      for (int i = 0; i < 3; ++i) acc[i] += n[i];
+    }
+  }
+  std::vector<float> expected(3 * size_t(nw));
+  for (int32_t w = 0; w < nw; ++w) {
+    const std::array<double, 3>& n = sums.at(key(w));
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    ASSERT_GT(len, 0);
+    for (int i = 0; i < 3; ++i) expected[3 * size_t(w) + i] = float(n[i] / len);
+  }
+  // Groups in all: the centre of 40 shares 5 values, +0 and -0 apart.
+  size_t centre_groups = 0;
+  for (const auto& kv : sums) centre_groups += kv.first[0] == 0;
+  EXPECT_EQ(centre_groups, 5u);
+
+  recompute_normals(m);
+  const std::vector<float>& got = m.channels[0].data;
+  ASSERT_EQ(got.size(), expected.size());
+  for (int32_t w = 0; w < nw; ++w)
+    for (int i = 0; i < 3; ++i)
+      ASSERT_EQ(std::memcmp(&got[3 * size_t(w) + i], &expected[3 * size_t(w) + i], 4), 0)
+          << "wedge " << w << " of vertex " << m.wedge_vertex[w] << ": " << got[3 * size_t(w) + i] << " against "
+          << expected[3 * size_t(w) + i];
 }
 
 }  // namespace
