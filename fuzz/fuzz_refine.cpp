@@ -51,33 +51,32 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   iteas::Mesh narrow = (data[2] & 64) ? m : iteas::Mesh();
   iteas::RefineStats st;
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
+  // The input refined again (|again|, a copy of it) with other threads or
+  // routines must give the same mesh, bit for bit, after as many levels.
+  auto same_again = [&](iteas::Mesh& again, int threads, const iteas::RefineHooks& hooks) {
+    o.threads = threads;
+    iteas::RefineStats st2;
+    iteas::refine_mesh(again, o, hooks, &st2);
+    if (again.positions.size() != m.positions.size() || again.corner_vertex != m.corner_vertex ||
+        std::memcmp(again.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0 ||
+        st2.triangles_out != st.triangles_out || st2.levels.size() != st.levels.size())
+      __builtin_trap();
+  };
   if (data[2] & 16) {
-    // Oracle: two threads (the worker pool, pieces claimed in any order)
-    // give the same mesh, bit for bit. Exactly two: left to choose, the
-    // refinement takes one for a job this small while the worker sleeps.
-    o.threads = 2;
+    // Oracle: two threads (the worker pool, pieces claimed in any order).
+    // Exactly two: left to choose, the refinement takes one for a job this
+    // small while the worker sleeps.
     iteas::RefineHooks exact;
     exact.choose_threads = false;
-    iteas::RefineStats st2;
-    iteas::refine_mesh(two, o, exact, &st2);
-    if (two.positions.size() != m.positions.size() || two.corner_vertex != m.corner_vertex ||
-        std::memcmp(two.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0)
-      __builtin_trap();
+    same_again(two, 2, exact);
   }
   if (data[2] & 64) {
-    // Oracle: the baseline routines (SSE2) give the same mesh, bit for bit,
-    // as the wider ones the processor has (AVX sums, AVX2 matching, the
-    // AVX-512 loops of uniform levels: canonical corners, ring offsets,
-    // children and their opposites).
-    o.threads = 1;
+    // Oracle: the baseline routines (SSE2) against the wider ones the
+    // processor has (AVX sums, AVX2 matching, the AVX-512 loops of uniform
+    // levels: canonical corners, ring offsets, children and their opposites).
     iteas::RefineHooks baseline;
     baseline.wide = false;
-    iteas::RefineStats st3;
-    iteas::refine_mesh(narrow, o, baseline, &st3);
-    if (narrow.positions.size() != m.positions.size() || narrow.corner_vertex != m.corner_vertex ||
-        std::memcmp(narrow.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0 ||
-        st3.triangles_out != st.triangles_out || st3.levels.size() != st.levels.size())
-      __builtin_trap();
+    same_again(narrow, 1, baseline);
   }
   return 0;
 }
