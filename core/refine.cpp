@@ -1045,7 +1045,8 @@ void recompute_normals(Mesh& m) {
   auto same = [wv, wn](int32_t x, int32_t y) {
     return wv[x] == wv[y] && std::memcmp(wn + 3 * size_t(x), wn + 3 * size_t(y), 3 * sizeof(float)) == 0;
   };
-  std::vector<int32_t> start(size_t(nv) + 2, 0), order(static_cast<size_t>(nw)), group(static_cast<size_t>(nw));
+  std::vector<int32_t> start(size_t(nv) + 2, 0);
+  Array<int32_t> order(static_cast<size_t>(nw)), group(static_cast<size_t>(nw));  // every entry written below
   for (int32_t w = 0; w < nw; ++w) ++start[size_t(bucket(w)) + 1];
   for (size_t i = 1; i < start.size(); ++i) start[i] += start[i - 1];
   {
