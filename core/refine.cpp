@@ -1022,7 +1022,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
 
 }  // namespace
 
-void recompute_normals(Mesh& m) {
+void recompute_normals(Mesh& m, int threads) {
   int ni = -1;
   for (size_t i = 0; i < m.channels.size(); ++i)
     if (m.channels[i].kind == ChannelKind::kNormal && m.channels[i].components == 3) { ni = int(i); break; }
@@ -1054,35 +1054,44 @@ void recompute_normals(Mesh& m) {
     for (int32_t w = 0; w < nw; ++w) order[size_t(at[size_t(bucket(w))]++)] = w;
   }
   constexpr int32_t kCompareAll = 16;  // wedges of one vertex compared pairwise up to this many
-  for (size_t r = 0; r + 1 < start.size(); ++r) {
-    int32_t* run = order.data() + start[r];
-    const int32_t k = start[r + 1] - start[r];
-    if (k <= kCompareAll) {
-      for (int32_t i = 0; i < k; ++i) {
-        const int32_t w = run[i];
-        int32_t g = w;
-        for (int32_t j = 0; j < i; ++j)
-          if (same(run[j], w)) { g = group[size_t(run[j])]; break; }
-        group[size_t(w)] = g;
+  // Each vertex's wedges on their own (on all threads; the counting sort
+  // above stays on one).
+  parallel_for(int64_t(start.size()) - 1, threads, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      int32_t* run = order.data() + start[r];
+      const int32_t k = start[r + 1] - start[r];
+      if (k <= kCompareAll) {
+        for (int32_t i = 0; i < k; ++i) {
+          const int32_t w = run[i];
+          int32_t g = w;
+          for (int32_t j = 0; j < i; ++j)
+            if (same(run[j], w)) { g = group[size_t(run[j])]; break; }
+          group[size_t(w)] = g;
+        }
+        continue;
       }
-      continue;
+      // By vertex, normal bits, then wedge: equal keys are adjacent, the
+      // first of each the group's first wedge.
+      auto key = [wv, wn](int32_t w) {
+        std::array<uint32_t, 4> q;
+        q[0] = uint32_t(wv[w]);
+        std::memcpy(q.data() + 1, wn + 3 * size_t(w), 3 * sizeof(float));
+        return q;
+      };
+      std::sort(run, run + k, [&key](int32_t x, int32_t y) {
+        const auto kx = key(x), ky = key(y);
+        return kx != ky ? kx < ky : x < y;
+      });
+      for (int32_t i = 0; i < k; ++i)
+        group[size_t(run[i])] = (i > 0 && same(run[i - 1], run[i])) ? group[size_t(run[i - 1])] : run[i];
     }
-    // By vertex, normal bits, then wedge: equal keys are adjacent, the
-    // first of each the group's first wedge.
-    auto key = [wv, wn](int32_t w) {
-      std::array<uint32_t, 4> q;
-      q[0] = uint32_t(wv[w]);
-      std::memcpy(q.data() + 1, wn + 3 * size_t(w), 3 * sizeof(float));
-      return q;
-    };
-    std::sort(run, run + k, [&key](int32_t x, int32_t y) {
-      const auto kx = key(x), ky = key(y);
-      return kx != ky ? kx < ky : x < y;
-    });
-    for (int32_t i = 0; i < k; ++i)
-      group[size_t(run[i])] = (i > 0 && same(run[i - 1], run[i])) ? group[size_t(run[i - 1])] : run[i];
-  }
-  std::vector<double> acc(3 * size_t(nw), 0.0);
+  }, 4096);
+  // The sums in face order, on one thread (a group's faces may lie
+  // anywhere); zeroed on all.
+  Array<double> acc(3 * size_t(nw));
+  parallel_for(int64_t(acc.size()), threads, [&](int64_t b, int64_t e) {
+    std::fill(acc.data() + b, acc.data() + e, 0.0);
+  }, 16384);
   const int32_t nf = m.num_faces();
   const float* p = m.positions.data();
   for (int32_t f = 0; f < nf; ++f) {
@@ -1097,17 +1106,19 @@ void recompute_normals(Mesh& m) {
       for (int i = 0; i < 3; ++i) acc[3 * size_t(gi) + i] += n[i];
     }
   }
-  for (int32_t w = 0; w < nw; ++w) {
-    const double* n = &acc[3 * size_t(group[w])];
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-    float* out = &nch.data[3 * size_t(w)];
-    if (len > 0) {
-      for (int i = 0; i < 3; ++i) out[i] = float(n[i] / len);
-    } else {
-      const double l2 = std::sqrt(double(out[0]) * out[0] + double(out[1]) * out[1] + double(out[2]) * out[2]);
-      if (l2 > 0) for (int i = 0; i < 3; ++i) out[i] = float(out[i] / l2);
+  parallel_for(nw, threads, [&](int64_t b, int64_t e) {
+    for (int64_t w = b; w < e; ++w) {
+      const double* n = &acc[3 * size_t(group[w])];
+      const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+      float* out = &nch.data[3 * size_t(w)];
+      if (len > 0) {
+        for (int i = 0; i < 3; ++i) out[i] = float(n[i] / len);
+      } else {
+        const double l2 = std::sqrt(double(out[0]) * out[0] + double(out[1]) * out[1] + double(out[2]) * out[2]);
+        if (l2 > 0) for (int i = 0; i < 3; ++i) out[i] = float(out[i] / l2);
+      }
     }
-  }
+  }, 8192);
 }
 
 namespace {
@@ -1520,7 +1531,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (stats.stopped_by == "max_levels" && o.mode == Mode::kFixed && levels_done < o.levels) stats.stopped_by = "converged";
 
   if (levels_done > 0) {
-    recompute_normals(m);
+    recompute_normals(m, s.threads);
     orthogonalise_tangents(m);
   }
   stats.ms_refine = now() - t1;

@@ -96,8 +96,9 @@ RefineResult refine_mesh(Mesh& mesh, const RefineOptions& options, const RefineH
 // over its smoothing group (the wedges of its vertex whose normals are the
 // same bit for bit: UV seams stay smooth, hard edges stay hard), summed in
 // face order and normalised; a group whose sum is zero keeps its own
-// normal, normalised.
-void recompute_normals(Mesh& mesh);
+// normal, normalised. On up to |threads| threads (<= 0: all cores); the
+// result is the same for any count.
+void recompute_normals(Mesh& mesh, int threads = 1);
 
 // Bytes held by the mesh's arrays (capacity), for the memory statistics.
 int64_t mesh_bytes(const Mesh& mesh);

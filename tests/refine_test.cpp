@@ -42,10 +42,20 @@ Mesh refined(const Mesh& in, const RefineOptions& o, RefineStats* st = nullptr, 
   return m;
 }
 
+// The same mesh bit for bit: positions, faces, wedges and every wedge
+// channel's values (normals recomputed, the rest blended).
 bool same_mesh(const Mesh& a, const Mesh& b) {
-  return a.positions.size() == b.positions.size() &&
-         std::memcmp(a.positions.data(), b.positions.data(), a.positions.size() * 4) == 0 &&
-         a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group;
+  if (!(a.positions.size() == b.positions.size() &&
+        std::memcmp(a.positions.data(), b.positions.data(), a.positions.size() * 4) == 0 &&
+        a.corner_vertex == b.corner_vertex && a.corner_wedge == b.corner_wedge && a.face_group == b.face_group &&
+        a.wedge_vertex == b.wedge_vertex && a.channels.size() == b.channels.size()))
+    return false;
+  for (size_t i = 0; i < a.channels.size(); ++i) {
+    const std::vector<float>& x = a.channels[i].data;
+    const std::vector<float>& y = b.channels[i].data;
+    if (x.size() != y.size() || std::memcmp(x.data(), y.data(), x.size() * 4) != 0) return false;
+  }
+  return true;
 }
 
 // The first |n| vertices' positions of |m| as a sorted list of triples:
