@@ -884,7 +884,6 @@ TEST(Refine, DoubledTrianglesStayBounded) {
   }
 }
 
-
 // Normals recomputed per smoothing group (recompute_normals, run after the
 // last level): two fans, one whose centre has 40 wedges (grouped by sorting)
 // and one whose centre has 9 (compared pairwise), the wedges' normals drawn
@@ -916,7 +915,8 @@ TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
         m.corner_wedge.push_back(int32_t(m.wedge_vertex.size()));
         m.wedge_vertex.push_back(v[j]);
         // Centre wedges cycle through the values out of step with the faces;
-        // a ring vertex's two wedges agree on every third face.
+        // ring wedges take theirs by face and corner, so a ring vertex's two
+        // wedges agree or not.
         const int c = j == 0 ? (i * 3) % 5 : (f % 3 == 0 ? 0 : (f + j) % 5);
         for (int q = 0; q < 3; ++q) normal.data.push_back(choices[c][q]);
       }
