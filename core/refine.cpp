@@ -6,7 +6,9 @@
 #include <cstring>
 #include <limits>
 #include <numeric>
+#include <type_traits>
 #include <unordered_map>
+#include <utility>
 
 #include "core/butterfly.h"
 #include "core/cpu_features.h"
@@ -62,26 +64,51 @@ void blend_skin(Mesh& m, const Channel& joints, Channel& weights, int32_t out, i
   for (int k = 0; k < wc; ++k) weights.data[size_t(out) * wc + k] = (k < n && sum > 0) ? inf[k].weight / sum : 0.0f;
 }
 
-void blend_wedge(Mesh& m, int32_t out, int32_t a, int32_t b) {
+// New wedges out0, out0 + 1, ... blended from the pairs of older wedges
+// src[0, n): a channel at a time, each in a loop of its own (the sources are
+// never among the wedges written, so the order changes no value). Per wedge,
+// with a switch on the channel inside, the blending took a fifth of a
+// normal-and-tangent mesh's refinement.
+using WedgePair = std::pair<int32_t, int32_t>;
+void blend_wedges(Mesh& m, int32_t out0, const WedgePair* src, int64_t n) {
   for (Channel& ch : m.channels) {
-    const int n = ch.components;
-    float* o = &ch.data[size_t(out) * n];
-    const float* x = &ch.data[size_t(a) * n];
-    const float* y = &ch.data[size_t(b) * n];
+    float* d = ch.data.data();
+    // The mean of both sources in the first |take| of C components, the
+    // first source's in the rest (a tangent's handedness).
+    auto mean = [&](auto components, int take) {
+      constexpr int C = decltype(components)::value;
+      for (int64_t i = 0; i < n; ++i) {
+        float* o = d + size_t(out0 + i) * C;
+        const float* x = d + size_t(src[i].first) * C;
+        const float* y = d + size_t(src[i].second) * C;
+        for (int k = 0; k < C; ++k) o[k] = k < take ? 0.5f * (x[k] + y[k]) : x[k];
+      }
+    };
+    auto mean_of = [&](int components, int take) {
+      switch (components) {
+        case 1: mean(std::integral_constant<int, 1>(), take); break;
+        case 2: mean(std::integral_constant<int, 2>(), take); break;
+        case 3: mean(std::integral_constant<int, 3>(), take); break;
+        default: mean(std::integral_constant<int, 4>(), take); break;  // 1..4 components
+      }
+    };
+    const int c = ch.components;
     switch (ch.kind) {
       case ChannelKind::kJoints:
-        if (ch.pair < 0) for (int k = 0; k < n; ++k) o[k] = x[k];  // no weights: nearest
-        break;  // otherwise written with its WEIGHTS channel
+        if (ch.pair < 0) mean_of(c, 0);  // no weights: nearest
+        break;                           // otherwise written with its WEIGHTS channel
       case ChannelKind::kWeights:
-        if (ch.pair >= 0) blend_skin(m, m.channels[ch.pair], ch, out, a, b);
-        else for (int k = 0; k < n; ++k) o[k] = 0.5f * (x[k] + y[k]);
+        if (ch.pair >= 0)
+          for (int64_t i = 0; i < n; ++i)
+            blend_skin(m, m.channels[ch.pair], ch, out0 + int32_t(i), src[i].first, src[i].second);
+        else
+          mean_of(c, c);
         break;
       case ChannelKind::kTangent:
-        for (int k = 0; k < std::min(n, 3); ++k) o[k] = 0.5f * (x[k] + y[k]);
-        if (n == 4) o[3] = x[3];  // handedness
+        mean_of(c, std::min(c, 3));  // the handedness (w) kept
         break;
       default:
-        for (int k = 0; k < n; ++k) o[k] = 0.5f * (x[k] + y[k]);
+        mean_of(c, c);
     }
   }
 }
@@ -422,6 +449,8 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     Array<int32_t> list(kChunk);
     std::vector<StencilTerm> terms;
+    std::vector<WedgePair> sources;  // the chunk's new wedges' (a, b)
+    if (wedges) sources.reserve(2 * kChunk);
     for (int64_t k = b; k < e; ++k) {
       const int64_t n =
           list_canonical_corners(opp, k * kChunk, std::min(nc, (k + 1) * kChunk), list.data(), s.bctx.wide);
@@ -456,20 +485,23 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         }
       }
       if (!wedges) continue;
-      int32_t wid = int32_t(nw0 + wedges_in[k]);
+      const int32_t w0 = int32_t(nw0 + wedges_in[k]);
+      int32_t wid = w0;
+      sources.clear();
       for (int64_t i = 0; i < n; ++i) {
         const int32_t c = list[i], o = opp[c], v = first + int32_t(i);
         const int32_t wf = wid++;
         m.wedge_vertex[wf] = v;
-        blend_wedge(m, wf, cw_old[next_corner(c)], cw_old[prev_corner(c)]);
+        sources.emplace_back(cw_old[next_corner(c)], cw_old[prev_corner(c)]);
         ewedge[c] = wf;
         if (o < 0) continue;
         if (shared(c, o)) { ewedge[o] = wf; continue; }
         const int32_t wg = wid++;
         m.wedge_vertex[wg] = v;
-        blend_wedge(m, wg, cw_old[next_corner(o)], cw_old[prev_corner(o)]);
+        sources.emplace_back(cw_old[next_corner(o)], cw_old[prev_corner(o)]);
         ewedge[o] = wg;
       }
+      blend_wedges(m, w0, sources.data(), int64_t(sources.size()));
     }
   });
 
@@ -877,7 +909,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   std::vector<int32_t> evert(nc, -1), ewedge(wedges ? nc : 0, -1), edges;
   auto wedge_at = [&](int64_t c) { return wedges ? ewedge[c] : -1; };
   int32_t next_v = nv, next_w = m.wedge_count();
-  std::vector<std::pair<int32_t, int32_t>> wedge_src;  // (a, b) per new wedge
+  std::vector<WedgePair> wedge_src;  // (a, b) per new wedge
   for (int32_t c = 0; c < nc; ++c) {
     if (!plan.split[c] || !(opp[c] < 0 || c < opp[c])) continue;
     const int32_t o = opp[c];
@@ -909,7 +941,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
     for (int32_t c = 0; c < nc; ++c)
       if (ewedge[c] >= 0) m.wedge_vertex[ewedge[c]] = evert[c];
     parallel_for(int64_t(wedge_src.size()), s.threads, [&](int64_t b, int64_t e) {
-      for (int64_t i = b; i < e; ++i) blend_wedge(m, w0 + int32_t(i), wedge_src[i].first, wedge_src[i].second);
+      blend_wedges(m, w0 + int32_t(b), wedge_src.data() + b, e - b);
     });
   }
 
