@@ -1155,23 +1155,32 @@ void recompute_normals(Mesh& m, int threads) {
 
 namespace {
 
-void orthogonalise_tangents(Mesh& m) {
+// Tangents made orthogonal to the (recomputed) normal and unit length, on
+// all threads (each wedge on its own); w, the handedness, made -1 or 1.
+void orthogonalise_tangents(Mesh& m, int threads) {
   const int ni = m.find_channel("NORMAL");
+  const bool normal = ni >= 0 && m.channels[ni].components == 3;
+  const int32_t nw = m.num_wedges();
   for (Channel& ch : m.channels) {
     if (ch.kind != ChannelKind::kTangent || ch.components < 3) continue;
-    const int32_t nw = m.num_wedges();
-    for (int32_t w = 0; w < nw; ++w) {
-      float* t = &ch.data[size_t(w) * ch.components];
-      double x[3] = {t[0], t[1], t[2]};
-      if (ni >= 0 && m.channels[ni].components == 3) {
-        const float* n = &m.channels[ni].data[3 * size_t(w)];
-        const double d = x[0] * n[0] + x[1] * n[1] + x[2] * n[2];
-        for (int i = 0; i < 3; ++i) x[i] -= d * n[i];
+    // Locals: the stores may alias anything the captures reach.
+    const int nc = ch.components;
+    float* const td = ch.data.data();
+    const float* const nd = normal ? m.channels[ni].data.data() : nullptr;
+    parallel_for(nw, threads, [nc, td, nd](int64_t b, int64_t e) {
+      for (int64_t w = b; w < e; ++w) {
+        float* t = td + size_t(w) * nc;
+        double x[3] = {t[0], t[1], t[2]};
+        if (nd) {
+          const float* n = nd + 3 * size_t(w);
+          const double d = x[0] * n[0] + x[1] * n[1] + x[2] * n[2];
+          for (int i = 0; i < 3; ++i) x[i] -= d * n[i];
+        }
+        const double len = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
+        if (len > 0) for (int i = 0; i < 3; ++i) t[i] = float(x[i] / len);
+        if (nc == 4) t[3] = t[3] < 0 ? -1.0f : 1.0f;
       }
-      const double len = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
-      if (len > 0) for (int i = 0; i < 3; ++i) t[i] = float(x[i] / len);
-      if (ch.components == 4) t[3] = t[3] < 0 ? -1.0f : 1.0f;
-    }
+    }, 8192);
   }
 }
 
@@ -1564,7 +1573,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
 
   if (levels_done > 0) {
     recompute_normals(m, s.threads);
-    orthogonalise_tangents(m);
+    orthogonalise_tangents(m, s.threads);
   }
   stats.ms_refine = now() - t1;
   // The last level's summary already describes the output when T is the same.
