@@ -109,7 +109,7 @@ struct Channel {
   int components = 0;      // 1..4
   ChannelKind kind = ChannelKind::kLinear;
   int pair = -1;           // for kJoints/kWeights: index of the partner channel
-  std::vector<float> data; // components per wedge
+  Array<float> data;       // components per wedge (grown without a zero fill: see Array)
 };
 
 // A per-vertex channel refined with the Butterfly stencil weights

@@ -89,7 +89,14 @@ void blend_wedges(Mesh& m, int32_t out0, const WedgePair* src, int64_t n) {
         case 1: mean(std::integral_constant<int, 1>(), take); break;
         case 2: mean(std::integral_constant<int, 2>(), take); break;
         case 3: mean(std::integral_constant<int, 3>(), take); break;
-        default: mean(std::integral_constant<int, 4>(), take); break;  // 1..4 components
+        case 4: mean(std::integral_constant<int, 4>(), take); break;
+        default:  // any other count (glTF's attributes have 1 to 4)
+          for (int64_t i = 0; i < n; ++i) {
+            float* o = d + size_t(out0 + i) * components;
+            const float* x = d + size_t(src[i].first) * components;
+            const float* y = d + size_t(src[i].second) * components;
+            for (int k = 0; k < components; ++k) o[k] = k < take ? 0.5f * (x[k] + y[k]) : x[k];
+          }
       }
     };
     const int c = ch.components;

@@ -51,8 +51,8 @@ bool same_mesh(const Mesh& a, const Mesh& b) {
         a.wedge_vertex == b.wedge_vertex && a.channels.size() == b.channels.size()))
     return false;
   for (size_t i = 0; i < a.channels.size(); ++i) {
-    const std::vector<float>& x = a.channels[i].data;
-    const std::vector<float>& y = b.channels[i].data;
+    const Array<float>& x = a.channels[i].data;
+    const Array<float>& y = b.channels[i].data;
     if (x.size() != y.size() || std::memcmp(x.data(), y.data(), x.size() * 4) != 0) return false;
   }
   return true;
@@ -960,7 +960,7 @@ TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
   EXPECT_EQ(centre_groups, 5u);
 
   recompute_normals(m);
-  const std::vector<float>& got = m.channels[0].data;
+  const Array<float>& got = m.channels[0].data;
   ASSERT_EQ(got.size(), expected.size());
   for (int32_t w = 0; w < nw; ++w)
     for (int i = 0; i < 3; ++i)
