@@ -73,30 +73,27 @@ using WedgePair = std::pair<int32_t, int32_t>;
 void blend_wedges(Mesh& m, int32_t out0, const WedgePair* src, int64_t n) {
   for (Channel& ch : m.channels) {
     float* d = ch.data.data();
-    // The mean of both sources in the first |take| of C components, the
-    // first source's in the rest (a tangent's handedness).
-    auto mean = [&](auto components, int take) {
-      constexpr int C = decltype(components)::value;
+    // The mean of both sources in the first |take| of the channel's
+    // components, the first source's in the rest (a tangent's handedness):
+    // a loop for each count glTF has (1 to 4, known when compiled), and
+    // one for any other (|fixed| 0).
+    auto mean = [&](auto fixed, int components, int take) {
+      constexpr int kFixed = decltype(fixed)::value;
+      const int cc = kFixed > 0 ? kFixed : components;
       for (int64_t i = 0; i < n; ++i) {
-        float* o = d + size_t(out0 + i) * C;
-        const float* x = d + size_t(src[i].first) * C;
-        const float* y = d + size_t(src[i].second) * C;
-        for (int k = 0; k < C; ++k) o[k] = k < take ? 0.5f * (x[k] + y[k]) : x[k];
+        float* o = d + size_t(out0 + i) * cc;
+        const float* x = d + size_t(src[i].first) * cc;
+        const float* y = d + size_t(src[i].second) * cc;
+        for (int k = 0; k < cc; ++k) o[k] = k < take ? 0.5f * (x[k] + y[k]) : x[k];
       }
     };
     auto mean_of = [&](int components, int take) {
       switch (components) {
-        case 1: mean(std::integral_constant<int, 1>(), take); break;
-        case 2: mean(std::integral_constant<int, 2>(), take); break;
-        case 3: mean(std::integral_constant<int, 3>(), take); break;
-        case 4: mean(std::integral_constant<int, 4>(), take); break;
-        default:  // any other count (glTF's attributes have 1 to 4)
-          for (int64_t i = 0; i < n; ++i) {
-            float* o = d + size_t(out0 + i) * components;
-            const float* x = d + size_t(src[i].first) * components;
-            const float* y = d + size_t(src[i].second) * components;
-            for (int k = 0; k < components; ++k) o[k] = k < take ? 0.5f * (x[k] + y[k]) : x[k];
-          }
+        case 1: mean(std::integral_constant<int, 1>(), components, take); break;
+        case 2: mean(std::integral_constant<int, 2>(), components, take); break;
+        case 3: mean(std::integral_constant<int, 3>(), components, take); break;
+        case 4: mean(std::integral_constant<int, 4>(), components, take); break;
+        default: mean(std::integral_constant<int, 0>(), components, take);
       }
     };
     const int c = ch.components;
