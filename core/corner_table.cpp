@@ -548,29 +548,32 @@ __attribute__((target("avx512f"))) int64_t canonical_blocks_avx512(const int32_t
 }  // namespace
 #endif
 
-int64_t count_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, bool wide) {
+namespace {
+// count_canonical_corners, or with |kList| list_canonical_corners: the
+// blocks of 16 where |wide| and the processor has AVX-512, the rest (or all)
+// one corner at a time.
+template <bool kList>
+int64_t canonical_corners(const int32_t* opp, int64_t begin, int64_t end, int32_t* out, bool wide) {
   int64_t n = 0, c = begin;
 #if ITEAS_X86_FEATURES
-  if (wide && cpu_has(CpuFeature::kAvx512)) c = canonical_blocks_avx512<false>(opp, begin, end, nullptr, n);
-#else
-  (void)wide;
-#endif
-  for (; c < end; ++c) n += uint32_t(opp[c]) > uint32_t(c);
-  return n;
-}
-
-int64_t list_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, int32_t* out, bool wide) {
-  int64_t n = 0, c = begin;
-#if ITEAS_X86_FEATURES
-  if (wide && cpu_has(CpuFeature::kAvx512)) c = canonical_blocks_avx512<true>(opp, begin, end, out, n);
+  if (wide && cpu_has(CpuFeature::kAvx512)) c = canonical_blocks_avx512<kList>(opp, begin, end, out, n);
 #else
   (void)wide;
 #endif
   for (; c < end; ++c) {
-    out[n] = int32_t(c);  // kept only when canonical (no branch)
+    if constexpr (kList) out[n] = int32_t(c);  // kept only when canonical (no branch)
     n += uint32_t(opp[c]) > uint32_t(c);
   }
   return n;
+}
+}  // namespace
+
+int64_t count_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, bool wide) {
+  return canonical_corners<false>(opp, begin, end, nullptr, wide);
+}
+
+int64_t list_canonical_corners(const int32_t* opp, int64_t begin, int64_t end, int32_t* out, bool wide) {
+  return canonical_corners<true>(opp, begin, end, out, wide);
 }
 
 bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from, const std::vector<uint8_t>& touched,

@@ -489,18 +489,18 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         }
       }
       if (!wedges) continue;
+      // The chunk's new wedges are w0, w0 + 1, ...: one per source pair.
       const int32_t w0 = int32_t(nw0 + wedges_in[k]);
-      int32_t wid = w0;
       sources.clear();
       for (int64_t i = 0; i < n; ++i) {
         const int32_t c = list[i], o = opp[c], v = first + int32_t(i);
-        const int32_t wf = wid++;
+        const int32_t wf = w0 + int32_t(sources.size());
         m.wedge_vertex[wf] = v;
         sources.emplace_back(cw_old[next_corner(c)], cw_old[prev_corner(c)]);
         ewedge[c] = wf;
         if (o < 0) continue;
         if (shared(c, o)) { ewedge[o] = wf; continue; }
-        const int32_t wg = wid++;
+        const int32_t wg = w0 + int32_t(sources.size());
         m.wedge_vertex[wg] = v;
         sources.emplace_back(cw_old[next_corner(o)], cw_old[prev_corner(o)]);
         ewedge[o] = wg;
