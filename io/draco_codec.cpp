@@ -2,8 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
+#include <draco/attributes/attribute_quantization_transform.h>
 #include <draco/compression/decode.h>
+#include <draco/core/options.h>
+#include <draco/core/quantization_utils.h>
 #include <draco/compression/expert_encode.h>
 #include <draco/mesh/mesh.h>
 
@@ -99,6 +103,71 @@ Status decode_unguarded(const uint8_t* data, size_t size, const std::map<std::st
   return Status::Ok();
 }
 
+// The bounds of the positions a decoder of the payload gets, without
+// decoding it: the encoder quantises each value with draco::Quantizer after
+// subtracting the grid's origin, and the decoder multiplies the integer back
+// with draco::Dequantizer and adds the origin. The same library classes with
+// the same parameters (the explicit grid as the encoder reads it, or the one
+// it computes from the attribute with the same routine) give the decoded
+// values bit for bit. The payload holds the values of the points the faces
+// use (a point no face uses is left out; equal points may be merged and a
+// non-manifold one split, which keeps the values); where the encoder dropped
+// a face (one that names a point twice, or whose points it merged), the
+// caller decodes instead.
+bool dequantised_bounds(const draco::Mesh& dm, const draco::PointAttribute& att, const std::vector<int32_t>& faces,
+                        int bits, const float* grid_origin, float grid_range, EncodeResult* out) {
+  if (att.num_components() != 3 || out->faces != int64_t(faces.size() / 3) || faces.empty()) return false;
+  draco::AttributeQuantizationTransform grid;
+  const bool ok = grid_origin && grid_range > 0 ? grid.SetParameters(bits, grid_origin, 3, grid_range)
+                                                : grid.ComputeParameters(att, bits);
+  if (!ok) return false;
+  const int32_t max_quantized = int32_t((1u << uint32_t(bits)) - 1);
+  draco::Quantizer quantize;
+  quantize.Init(grid.range(), max_quantized);
+  draco::Dequantizer dequantize;
+  if (!dequantize.Init(grid.range(), max_quantized)) return false;
+  std::vector<uint8_t> used(dm.num_points(), 0);
+  for (int32_t p : faces) used[size_t(p)] = 1;
+  float lo[3], hi[3];
+  for (int k = 0; k < 3; ++k) { lo[k] = std::numeric_limits<float>::infinity(); hi[k] = -lo[k]; }
+  const float origin[3] = {grid.min_value(0), grid.min_value(1), grid.min_value(2)};
+  for (uint32_t p = 0; p < dm.num_points(); ++p) {
+    if (!used[p]) continue;
+    float v[3];
+    att.GetValue(att.mapped_index(draco::PointIndex(p)), v);
+    for (int k = 0; k < 3; ++k) {
+      const float back = dequantize.DequantizeFloat(quantize.QuantizeFloat(v[k] - origin[k])) + origin[k];
+      lo[k] = std::min(lo[k], back);
+      hi[k] = std::max(hi[k], back);
+    }
+  }
+  for (int k = 0; k < 3; ++k) { out->pos_min[k] = lo[k]; out->pos_max[k] = hi[k]; }
+  return true;
+}
+
+// The bounds of the positions a decoder gets, by decoding the payload.
+Status decoded_bounds(EncodeResult* out) {
+  DecodedGeometry check;
+  std::map<std::string, int> pos_only;
+  if (out->unique_ids.count("POSITION")) pos_only["POSITION"] = out->unique_ids["POSITION"];
+  ReadLimits unlimited;
+  unlimited.max_vertices = unlimited.max_triangles = INT64_MAX;
+  Status s = draco_decode(out->bytes.data(), out->bytes.size(), &pos_only, unlimited, &check);
+  if (!s.ok()) return s;
+  if (check.points != out->points || int64_t(check.faces.size() / 3) != out->faces)
+    return Status::Error(ErrorKind::kBadInput, "encode_failed", "Draco payload counts differ from the encoder's");
+  if (!check.attributes.empty() && check.points > 0) {
+    const std::vector<float>& p = check.attributes[0].data;
+    for (int k = 0; k < 3; ++k) out->pos_min[k] = out->pos_max[k] = p[k];
+    for (int64_t i = 1; i < check.points; ++i)
+      for (int k = 0; k < 3; ++k) {
+        out->pos_min[k] = std::min(out->pos_min[k], p[3 * size_t(i) + k]);
+        out->pos_max[k] = std::max(out->pos_max[k], p[3 * size_t(i) + k]);
+      }
+  }
+  return Status::Ok();
+}
+
 }  // namespace
 
 Status draco_decode(const uint8_t* data, size_t size, const std::map<std::string, int>* semantic_ids,
@@ -133,6 +202,7 @@ Status draco_encode(const EncodeRequest& req, const OutputOptions& options, Enco
     dm.SetFace(draco::FaceIndex(uint32_t(f)), face);
   }
   std::vector<int> ids;
+  const draco::PointAttribute* position = nullptr;
   for (const EncodeAttribute& a : req.attributes) {
     draco::GeometryAttribute::Type type = draco::GeometryAttribute::GENERIC;
     if (a.semantic == "POSITION") type = draco::GeometryAttribute::POSITION;
@@ -159,6 +229,25 @@ Status draco_encode(const EncodeRequest& req, const OutputOptions& options, Enco
     }
     ids.push_back(id);
     out->unique_ids[a.semantic] = id;
+    if (type == draco::GeometryAttribute::POSITION && !a.integer) position = att;
+  }
+  // The explicit grid as the encoder reads it: Draco keeps quantization
+  // options as text (std::to_string, six decimals) and parses them back, so
+  // it quantises with those values. Where that moves the grid by more than
+  // 1 % of its range (a mesh under about 5e-5 units across, whose range
+  // could even read as 0 and collapse every point), the primitive gets the
+  // grid the encoder computes from its own points instead.
+  float grid_origin[3] = {0, 0, 0}, grid_range = 0;
+  bool explicit_grid = false;
+  if (req.grid_origin && req.grid_range > 0) {
+    draco::Options text;
+    text.SetVector("origin", req.grid_origin, 3);
+    text.SetFloat("range", req.grid_range);
+    text.GetVector("origin", 3, grid_origin);
+    grid_range = text.GetFloat("range");
+    const float slack = 0.01f * req.grid_range;
+    explicit_grid = grid_range > 0 && std::fabs(grid_range - req.grid_range) <= slack;
+    for (int k = 0; k < 3; ++k) explicit_grid = explicit_grid && std::fabs(grid_origin[k] - req.grid_origin[k]) <= slack;
   }
   draco::ExpertEncoder encoder(dm);
   const int speed = 10 - std::clamp(options.draco_level, 0, 10);
@@ -168,7 +257,7 @@ Status draco_encode(const EncodeRequest& req, const OutputOptions& options, Enco
     const EncodeAttribute& a = req.attributes[i];
     if (a.integer) continue;  // JOINTS stay exact
     if (a.semantic == "POSITION") {
-      if (req.grid_origin && req.grid_range > 0)
+      if (explicit_grid)
         encoder.SetAttributeExplicitQuantization(ids[i], options.position_bits, 3, req.grid_origin, req.grid_range);
       else
         encoder.SetAttributeQuantization(ids[i], options.position_bits);
@@ -190,25 +279,11 @@ Status draco_encode(const EncodeRequest& req, const OutputOptions& options, Enco
   out->faces = int64_t(encoder.num_encoded_faces());
 
   // Accessor min/max must describe the decoded (dequantised) positions.
-  DecodedGeometry check;
-  std::map<std::string, int> pos_only;
-  if (out->unique_ids.count("POSITION")) pos_only["POSITION"] = out->unique_ids["POSITION"];
-  ReadLimits unlimited;
-  unlimited.max_vertices = unlimited.max_triangles = INT64_MAX;
-  Status s = draco_decode(out->bytes.data(), out->bytes.size(), &pos_only, unlimited, &check);
-  if (!s.ok()) return s;
-  if (check.points != out->points || int64_t(check.faces.size() / 3) != out->faces)
-    return Status::Error(ErrorKind::kBadInput, "encode_failed", "Draco payload counts differ from the encoder's");
-  if (!check.attributes.empty() && check.points > 0) {
-    const std::vector<float>& p = check.attributes[0].data;
-    for (int k = 0; k < 3; ++k) out->pos_min[k] = out->pos_max[k] = p[k];
-    for (int64_t i = 1; i < check.points; ++i)
-      for (int k = 0; k < 3; ++k) {
-        out->pos_min[k] = std::min(out->pos_min[k], p[3 * size_t(i) + k]);
-        out->pos_max[k] = std::max(out->pos_max[k], p[3 * size_t(i) + k]);
-      }
-  }
-  return Status::Ok();
+  if (!position ||
+      dequantised_bounds(dm, *position, *req.faces, options.position_bits, explicit_grid ? grid_origin : nullptr,
+                         grid_range, out))
+    return Status::Ok();
+  return decoded_bounds(out);
 }
 
 }  // namespace iteas

@@ -47,7 +47,7 @@ struct EncodeResult {
   std::vector<uint8_t> bytes;
   int64_t points = 0, faces = 0;
   std::map<std::string, int> unique_ids;  // semantic -> Draco unique id
-  float pos_min[3] = {0, 0, 0}, pos_max[3] = {0, 0, 0};  // from the decoded payload
+  float pos_min[3] = {0, 0, 0}, pos_max[3] = {0, 0, 0};  // of the positions a decoder gets
 };
 Status draco_encode(const EncodeRequest& req, const OutputOptions& options, EncodeResult* out);
 

@@ -11,6 +11,7 @@
 #include <thread>
 #include <set>
 
+#include "io/draco_codec.h"
 #include "io/memory_budget.h"
 #include "io/pipeline.h"
 #include "tests/support.h"
@@ -216,6 +217,124 @@ TEST(MemoryBudget, CountsAlignedArraysAtTheirSize) {
   }
   MemoryBudget budget(4 << 20);
   EXPECT_THROW(Array<int32_t>(2 << 20), MemoryLimitExceeded);  // 8 MB
+}
+
+// Draco output: the POSITION accessor's min/max come from the encoder's own
+// quantisation (io/draco_codec.cpp), not from decoding the payload. They
+// must be, bit for bit, the bounds of the positions a decoder gets.
+struct DracoBounds {
+  float lo[3], hi[3];
+  int64_t points = 0, faces = 0;
+};
+DracoBounds decoded_draco_bounds(const EncodeResult& enc) {
+  DecodedGeometry g;
+  ReadLimits unlimited;
+  unlimited.max_vertices = unlimited.max_triangles = INT64_MAX;
+  EXPECT_TRUE(draco_decode(enc.bytes.data(), enc.bytes.size(), nullptr, unlimited, &g).ok());
+  DracoBounds b;
+  b.points = g.points;
+  b.faces = int64_t(g.faces.size() / 3);
+  for (int k = 0; k < 3; ++k) { b.lo[k] = INFINITY; b.hi[k] = -INFINITY; }
+  for (const DecodedAttribute& a : g.attributes) {
+    if (a.semantic != "POSITION") continue;
+    for (int64_t i = 0; i < g.points; ++i)
+      for (int k = 0; k < 3; ++k) {
+        b.lo[k] = std::min(b.lo[k], a.data[3 * size_t(i) + k]);
+        b.hi[k] = std::max(b.hi[k], a.data[3 * size_t(i) + k]);
+      }
+  }
+  return b;
+}
+
+// Encodes positions and faces (with the writer's grid over all the
+// positions, or the one the encoder computes) and checks the bounds against
+// a decode of the payload; returns the decoded bounds.
+DracoBounds check_draco_bounds(const std::vector<float>& pos, const std::vector<int32_t>& faces, bool grid,
+                               int bits) {
+  EncodeRequest req;
+  req.points = int64_t(pos.size() / 3);
+  req.faces = &faces;
+  req.attributes.push_back({"POSITION", 3, pos.data(), false});
+  float origin[3] = {INFINITY, INFINITY, INFINITY}, top[3] = {-INFINITY, -INFINITY, -INFINITY};
+  for (size_t i = 0; i < pos.size(); ++i) {
+    origin[i % 3] = std::min(origin[i % 3], pos[i]);
+    top[i % 3] = std::max(top[i % 3], pos[i]);
+  }
+  if (grid) {
+    req.grid_origin = origin;
+    req.grid_range = std::max({top[0] - origin[0], top[1] - origin[1], top[2] - origin[2]});
+  }
+  OutputOptions opt;
+  opt.position_bits = bits;
+  EncodeResult enc;
+  const Status s = draco_encode(req, opt, &enc);
+  EXPECT_TRUE(s.ok()) << s.message;
+  const DracoBounds d = decoded_draco_bounds(enc);
+  EXPECT_EQ(d.points, enc.points);
+  EXPECT_EQ(d.faces, enc.faces);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_EQ(enc.pos_min[k], d.lo[k]) << "axis " << k << (grid ? " (grid)" : "") << " bits " << bits;
+    EXPECT_EQ(enc.pos_max[k], d.hi[k]) << "axis " << k << (grid ? " (grid)" : "") << " bits " << bits;
+  }
+  return d;
+}
+
+TEST(Draco, PositionBoundsAreTheDecodedOnes) {
+  int meshes = 0;
+  for (const test::NamedMesh& nm : test::valid_meshes(300000)) {
+    SCOPED_TRACE(nm.name);
+    const Mesh& m = nm.mesh;
+    if (m.num_faces() == 0) continue;
+    const std::vector<float> pos(m.positions.begin(), m.positions.end());
+    const std::vector<int32_t> faces(m.corner_vertex.begin(), m.corner_vertex.end());
+    for (bool grid : {true, false})
+      for (int bits : {14, 8}) check_draco_bounds(pos, faces, grid, bits);
+    ++meshes;
+  }
+  EXPECT_GT(meshes, 20);
+}
+
+TEST(Draco, PositionBoundsWithUnusedAndRepeatedPoints) {
+  // Two triangles of a square, a point no face uses far outside it, and a
+  // face that names one point twice (the encoder drops it, and may drop its
+  // points): the bounds are still the decoded ones.
+  const std::vector<float> pos = {0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0, 50, 50, 50, 5, 5, 5, 6, 5, 5};
+  for (bool grid : {true, false}) {
+    check_draco_bounds(pos, {0, 1, 2, 0, 2, 3}, grid, 14);
+    check_draco_bounds(pos, {0, 1, 2, 0, 2, 3, 5, 6, 6}, grid, 14);
+  }
+}
+
+TEST(Draco, TinyMeshesKeepTheirShape) {
+  // Draco keeps explicit quantisation parameters as six-decimal text: a
+  // mesh 1e-8 units across once came out with every point at 0. Its shape
+  // must survive within a quantisation step, with the writer's grid or
+  // without, and in a whole GLB written and read back.
+  Document doc;
+  ASSERT_TRUE(test::load(test::data_dir() + "/bunny-npm.obj", &doc).ok());
+  Mesh& m = doc.meshes[0].mesh;
+  for (float& x : m.positions) x *= 1e-9f;
+  const Aabb box = bounding_box(m);
+  const std::vector<float> pos(m.positions.begin(), m.positions.end());
+  const std::vector<int32_t> faces(m.corner_vertex.begin(), m.corner_vertex.end());
+  for (bool grid : {true, false}) {
+    const DracoBounds d = check_draco_bounds(pos, faces, grid, 14);
+    for (int k = 0; k < 3; ++k) {
+      const float step = (box.hi[k] - box.lo[k]) / 16383 + 1e-30f;
+      EXPECT_NEAR(d.lo[k], box.lo[k], step) << k;
+      EXPECT_NEAR(d.hi[k], box.hi[k], step) << k;
+    }
+  }
+  std::vector<uint8_t> bytes;
+  WriteCounts counts;
+  ASSERT_TRUE(write_document(doc, OutputOptions(), "glb", nullptr, &bytes, &counts).ok());
+  Document back;
+  const Status r = read_document(bytes.data(), bytes.size(), "glb", ReadLimits(), &back);
+  ASSERT_TRUE(r.ok()) << r.message;
+  ASSERT_EQ(back.meshes.size(), 1u);
+  EXPECT_EQ(back.meshes[0].mesh.num_faces(), m.num_faces());
+  const Aabb out = bounding_box(back.meshes[0].mesh);
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR(out.hi[k] - out.lo[k], box.hi[k] - box.lo[k], 1e-3 * (box.hi[k] - box.lo[k])) << k;
 }
 
 TEST(Io, SniffsFormats) {
