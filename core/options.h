@@ -63,6 +63,9 @@ struct OutputOptions {
   bool draco = true;
   int position_bits = 14, normal_bits = 10, texcoord_bits = 12, color_bits = 10, generic_bits = 12;
   int draco_level = 7;
+  // Not an option of its own: the job's thread count (the refinement's),
+  // on which Draco payloads of several primitives are encoded at once.
+  int threads = 1;
 };
 
 struct Options {

@@ -7,8 +7,9 @@
 #include <cstring>
 #include <set>
 
-#include "io/document.h"
+#include "core/parallel.h"
 #include "io/container.h"
+#include "io/document.h"
 #include "io/draco_codec.h"
 
 namespace iteas {
@@ -123,13 +124,32 @@ void tidy(const Channel& ch, std::vector<float>& v) {
 
 bool is_target_channel(const std::string& name) { return name.rfind("target", 0) == 0 && name.find(':') != std::string::npos; }
 
-// Builds the JSON of one refined primitive (geometry only; the caller keeps
-// its material and extras).
-Status write_primitive(Builder& b, const MeshSlot& slot, int group, const OutputOptions& opt, const float* grid_origin,
-                       float grid_range, json* prim, bool* used_draco, WriteCounts* counts) {
+// One refined primitive's geometry as written: the faces of one group, their
+// corners' wedges numbered by first use, the values per vertex; with Draco,
+// the payload instead (the arrays freed once encoded).
+struct PrimitiveData {
+  struct Attr {
+    std::string name;
+    const Channel* ch;
+    std::vector<float> data;
+  };
+  std::vector<int32_t> idx;
+  int64_t nvert = 0, triangles = 0;
+  std::vector<float> pos;
+  std::vector<Attr> attrs;
+  std::vector<std::vector<float>> target_pos;  // per morph target, per vertex
+  bool draco = false;
+  std::vector<EncodeAttribute> encoded;  // with Draco: what the payload holds (no data pointers)
+  EncodeResult enc;
+  Status status;
+  bool ready = false;
+};
+
+void gather_primitive(const MeshSlot& slot, int group, PrimitiveData* d) {
   const Mesh& m = slot.mesh;
   const GroupInfo& gi = slot.groups[group];
-  std::vector<int32_t> remap(size_t(m.wedge_count()), -1), order, idx;
+  std::vector<int32_t> remap(size_t(m.wedge_count()), -1), order;
+  std::vector<int32_t>& idx = d->idx;
   for (int32_t f = 0; f < m.num_faces(); ++f) {
     if (m.group_of(f) != group) continue;
     for (int k = 0; k < 3; ++k) {
@@ -138,23 +158,66 @@ Status write_primitive(Builder& b, const MeshSlot& slot, int group, const Output
       idx.push_back(remap[w]);
     }
   }
-  if (idx.empty()) return Status::Ok();  // nothing left: the caller drops the primitive
-  const int64_t nvert = int64_t(order.size());
+  d->triangles = int64_t(idx.size() / 3);
+  if (idx.empty()) return;  // nothing left: the caller drops the primitive
+  const int64_t nvert = d->nvert = int64_t(order.size());
   auto vertex_of = [&](int32_t w) { return m.has_wedges() ? m.wedge_vertex[w] : w; };
-  std::vector<float> pos(size_t(nvert) * 3);
+  d->pos.resize(size_t(nvert) * 3);
   for (int64_t i = 0; i < nvert; ++i)
-    for (int k = 0; k < 3; ++k) pos[size_t(i) * 3 + k] = m.positions[3 * size_t(vertex_of(order[i])) + k];
-  struct Attr { std::string name; const Channel* ch; std::vector<float> data; };
-  std::vector<Attr> attrs;
+    for (int k = 0; k < 3; ++k) d->pos[size_t(i) * 3 + k] = m.positions[3 * size_t(vertex_of(order[i])) + k];
   for (size_t c = 0; c < m.channels.size(); ++c) {
     if (!gi.has_channel[c]) continue;
     const Channel& ch = m.channels[c];
-    Attr a{ch.name, &ch, std::vector<float>(size_t(nvert) * ch.components)};
+    PrimitiveData::Attr a{ch.name, &ch, std::vector<float>(size_t(nvert) * ch.components)};
     for (int64_t i = 0; i < nvert; ++i)
       for (int k = 0; k < ch.components; ++k) a.data[size_t(i) * ch.components + k] = ch.data[size_t(order[i]) * ch.components + k];
     if (!is_target_channel(ch.name)) tidy(ch, a.data);
-    attrs.push_back(std::move(a));
+    d->attrs.push_back(std::move(a));
   }
+  // Morph targets' positions per vertex (written without Draco).
+  if (gi.targets > 0) {
+    d->target_pos.resize(size_t(gi.targets));
+    for (int t = 0; t < gi.targets; ++t) {
+      std::vector<float>& td = d->target_pos[size_t(t)];
+      td.resize(size_t(nvert) * 3);
+      const std::vector<float>& src = m.vertex_channels[t].data;
+      for (int64_t i = 0; i < nvert; ++i)
+        for (int k = 0; k < 3; ++k) td[size_t(i) * 3 + k] = src[3 * size_t(vertex_of(order[i])) + k];
+    }
+  }
+}
+
+// Gathers a primitive and, with Draco, encodes it and frees the arrays.
+void prepare_primitive(const MeshSlot& slot, int group, const OutputOptions& opt, const float* grid_origin,
+                       float grid_range, PrimitiveData* d) {
+  gather_primitive(slot, group, d);
+  d->ready = true;
+  d->draco = opt.draco && slot.groups[group].targets == 0;
+  if (!d->draco || d->idx.empty()) return;
+  EncodeRequest req;
+  req.points = d->nvert;
+  req.faces = &d->idx;
+  req.attributes.push_back({"POSITION", 3, d->pos.data(), false});
+  for (const PrimitiveData::Attr& a : d->attrs)
+    if (!is_target_channel(a.name))
+      req.attributes.push_back({a.name, a.ch->components, a.data.data(), a.ch->kind == ChannelKind::kJoints});
+  req.grid_origin = grid_origin;
+  req.grid_range = grid_range;
+  d->status = draco_encode(req, opt, &d->enc);
+  for (EncodeAttribute& a : req.attributes) a.data = nullptr;
+  d->encoded = std::move(req.attributes);
+  std::vector<int32_t>().swap(d->idx);
+  std::vector<float>().swap(d->pos);
+  std::vector<PrimitiveData::Attr>().swap(d->attrs);
+}
+
+// Writes the JSON of one refined primitive (geometry only; the caller keeps
+// its material and extras) and its bytes.
+Status write_primitive(Builder& b, const MeshSlot& slot, int group, PrimitiveData& d, json* prim, bool* used_draco,
+                       WriteCounts* counts) {
+  if (d.triangles == 0) return Status::Ok();  // nothing left: the caller drops the primitive
+  if (!d.status.ok()) return d.status;
+  const GroupInfo& gi = slot.groups[group];
   json& p = *prim;
   p["attributes"] = json::object();
   p["mode"] = 4;
@@ -163,24 +226,12 @@ Status write_primitive(Builder& b, const MeshSlot& slot, int group, const Output
     if (p["extensions"].empty()) p.erase("extensions");
   }
   p.erase("targets");
-  const bool draco = opt.draco && gi.targets == 0;
-  if (draco) {
-    EncodeRequest req;
-    req.points = nvert;
-    req.faces = &idx;
-    req.attributes.push_back({"POSITION", 3, pos.data(), false});
-    for (const Attr& a : attrs)
-      if (!is_target_channel(a.name))
-        req.attributes.push_back({a.name, a.ch->components, a.data.data(), a.ch->kind == ChannelKind::kJoints});
-    req.grid_origin = grid_origin;
-    req.grid_range = grid_range;
-    EncodeResult enc;
-    Status s = draco_encode(req, opt, &enc);
-    if (!s.ok()) return s;
+  if (d.draco) {
+    const EncodeResult& enc = d.enc;
     const int view = b.add_view(enc.bytes.data(), enc.bytes.size(), 0);
     json ext_attrs = json::object();
-    for (const EncodeAttribute& a : req.attributes) {
-      ext_attrs[a.semantic] = enc.unique_ids[a.semantic];
+    for (const EncodeAttribute& a : d.encoded) {
+      ext_attrs[a.semantic] = enc.unique_ids.at(a.semantic);
       json acc = {{"componentType", a.integer ? kU16 : kFloat}, {"count", enc.points}, {"type", type_name(a.components)}};
       if (a.semantic == "POSITION") {
         acc["min"] = {enc.pos_min[0], enc.pos_min[1], enc.pos_min[2]};
@@ -195,30 +246,27 @@ Status write_primitive(Builder& b, const MeshSlot& slot, int group, const Output
     counts->primitives += 1;
     counts->vertices += enc.points;
     counts->triangles += enc.faces;
-    counts->quantization_collapsed += int64_t(idx.size() / 3) - enc.faces;
+    counts->quantization_collapsed += d.triangles - enc.faces;
     return Status::Ok();
   }
-  p["attributes"]["POSITION"] = b.float_accessor(pos, 3, true);
-  for (const Attr& a : attrs) {
+  const int64_t nvert = d.nvert;
+  p["attributes"]["POSITION"] = b.float_accessor(d.pos, 3, true);
+  for (const PrimitiveData::Attr& a : d.attrs) {
     if (is_target_channel(a.name)) continue;
     p["attributes"][a.name] = a.ch->kind == ChannelKind::kJoints ? b.u16_accessor(a.data, a.ch->components)
                                                                  : b.float_accessor(a.data, a.ch->components, false);
   }
-  p["indices"] = b.index_accessor(idx, nvert);
+  p["indices"] = b.index_accessor(d.idx, nvert);
   counts->primitives += 1;
   counts->vertices += nvert;
-  counts->triangles += int64_t(idx.size() / 3);
+  counts->triangles += d.triangles;
   if (gi.targets > 0) {
     json targets = json::array();
     for (int t = 0; t < gi.targets; ++t) {
       json tj = json::object();
-      std::vector<float> d(size_t(nvert) * 3);
-      const std::vector<float>& src = m.vertex_channels[t].data;
-      for (int64_t i = 0; i < nvert; ++i)
-        for (int k = 0; k < 3; ++k) d[size_t(i) * 3 + k] = src[3 * size_t(vertex_of(order[i])) + k];
-      tj["POSITION"] = b.float_accessor(d, 3, true);
+      tj["POSITION"] = b.float_accessor(d.target_pos[size_t(t)], 3, true);
       const std::string prefix = "target" + std::to_string(t) + ":";
-      for (const Attr& a : attrs)
+      for (const PrimitiveData::Attr& a : d.attrs)
         if (a.name.rfind(prefix, 0) == 0) tj[a.name.substr(prefix.size())] = b.float_accessor(a.data, a.ch->components, false);
       targets.push_back(tj);
     }
@@ -401,17 +449,40 @@ Status write_gltf(const Document& doc, const OutputOptions& opt, bool binary, co
 
   Builder b{j, bin};
   bool used_draco = false;
+  // One quantization grid per mesh so primitives that share a border keep it.
+  std::vector<Aabb> boxes(doc.meshes.size());
+  std::vector<float> ranges(doc.meshes.size(), 0.0f);
+  for (size_t si = 0; si < doc.meshes.size(); ++si) {
+    boxes[si] = bounding_box(doc.meshes[si].mesh);
+    for (int k = 0; k < 3; ++k) ranges[si] = std::max(ranges[si], boxes[si].hi[k] - boxes[si].lo[k]);
+  }
+  // Draco payloads are encoded on the job's threads, a primitive at a time
+  // (each on its own: the bytes do not depend on the thread count), and kept
+  // until written in order; without Draco each primitive's arrays are
+  // gathered just before they are written.
+  std::vector<std::vector<PrimitiveData>> data(doc.meshes.size());
+  std::vector<std::pair<size_t, int>> prims_all;
+  for (size_t si = 0; si < doc.meshes.size(); ++si) {
+    data[si].resize(doc.meshes[si].groups.size());
+    for (size_t g = 0; g < doc.meshes[si].groups.size(); ++g) prims_all.push_back({si, int(g)});
+  }
+  if (opt.draco && resolve_threads(opt.threads) > 1 && prims_all.size() > 1)
+    parallel_for_chunks(int64_t(prims_all.size()), opt.threads, [&](int64_t first, int64_t end) {
+      for (int64_t i = first; i < end; ++i) {
+        const auto [si, g] = prims_all[size_t(i)];
+        prepare_primitive(doc.meshes[si], g, opt, boxes[si].lo, ranges[si], &data[si][size_t(g)]);
+      }
+    });
   for (size_t si = 0; si < doc.meshes.size(); ++si) {
     const MeshSlot& slot = doc.meshes[si];
     const int mesh_index = doc.is_gltf ? slot.gltf_mesh : int(si);
-    // One quantization grid per mesh so primitives that share a border keep it.
-    const Aabb box = bounding_box(slot.mesh);
-    float range = 0;
-    for (int k = 0; k < 3; ++k) range = std::max(range, box.hi[k] - box.lo[k]);
     std::vector<int> empty_prims;
     for (size_t g = 0; g < slot.groups.size(); ++g) {
       json& prim = j["meshes"][mesh_index]["primitives"][slot.groups[g].gltf_primitive < 0 ? int(g) : slot.groups[g].gltf_primitive];
-      Status s = write_primitive(b, slot, int(g), opt, box.lo, range, &prim, &used_draco, counts);
+      PrimitiveData& d = data[si][g];
+      if (!d.ready) prepare_primitive(slot, int(g), opt, boxes[si].lo, ranges[si], &d);
+      Status s = write_primitive(b, slot, int(g), d, &prim, &used_draco, counts);
+      d = PrimitiveData();
       if (!s.ok()) return s;
       if (!prim.contains("indices")) empty_prims.push_back(slot.groups[g].gltf_primitive < 0 ? int(g) : slot.groups[g].gltf_primitive);
     }

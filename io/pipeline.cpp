@@ -69,7 +69,9 @@ Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   WriteCounts counts;
   const std::string out_format = rq.output_format.empty() ? "glb" : rq.output_format;
   auto make_stats = [&](const WriteCounts& c) { return stats_json(doc, per_mesh, rq.options, out_format, c, rq.refine); };
-  s = write_document(doc, rq.options.out, out_format, make_stats, &result->bytes, &counts);
+  OutputOptions out = rq.options.out;
+  out.threads = rq.options.refine.threads;
+  s = write_document(doc, out, out_format, make_stats, &result->bytes, &counts);
   if (!s.ok()) return s;
   const double t_encoded = now();
   result->stats = make_stats(counts);
