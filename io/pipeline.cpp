@@ -1,10 +1,13 @@
 #include "io/pipeline.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <mutex>
 
 #include "core/angles.h"
 #include "core/corner_table.h"
+#include "core/parallel.h"
 
 namespace iteas {
 
@@ -41,24 +44,57 @@ Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   if (rq.refine) {
     // max_triangles bounds the whole output: each mesh gets a share in
     // proportion to its input (never less than what it already has).
-    int64_t total_in = 0;
-    for (const MeshSlot& m : doc.meshes) total_in += m.mesh.num_faces();
-    for (size_t i = 0; i < doc.meshes.size(); ++i) {
+    int64_t total_in = 0, largest = 0;
+    for (const MeshSlot& m : doc.meshes) {
+      total_in += m.mesh.num_faces();
+      largest = std::max<int64_t>(largest, m.mesh.num_faces());
+    }
+    // Several meshes, none of them most of the work: refined at once, one
+    // thread each; otherwise one after another on all the job's threads.
+    // (A mesh's result is the same on any number of threads.)
+    const int threads = resolve_threads(rq.options.refine.threads);
+    const bool at_once = threads > 1 && doc.meshes.size() > 1 && 2 * largest <= total_in;
+    std::mutex progress_mutex;
+    std::atomic<bool> cancelled{false};
+    auto refine_one = [&](size_t i, int mesh_threads) {
       RefineOptions ro = rq.options.refine;
+      ro.threads = mesh_threads;
       const int64_t own = doc.meshes[i].mesh.num_faces();
       if (doc.meshes.size() > 1 && total_in > 0)
         ro.max_triangles = std::max<int64_t>(own, int64_t(double(ro.max_triangles) * double(own) / double(total_in)));
       RefineHooks rh;
       rh.now_ms = hooks.now_ms;
-      rh.progress = hooks.progress;
+      if (hooks.progress && at_once)
+        rh.progress = [&](int level, const char* phase, double fraction) {
+          std::lock_guard<std::mutex> lock(progress_mutex);
+          hooks.progress(level, phase, fraction);
+        };
+      else
+        rh.progress = hooks.progress;
       rh.cancel = hooks.cancel;
-      const RefineResult r = refine_mesh(doc.meshes[i].mesh, ro, rh, &per_mesh[i]);
-      ms_topology += per_mesh[i].ms_topology;
-      ms_refine += per_mesh[i].ms_refine;
-      if (r == RefineResult::kCancelled) {
-        result->cancelled = true;
-        return Status::Ok();
-      }
+      if (refine_mesh(doc.meshes[i].mesh, ro, rh, &per_mesh[i]) == RefineResult::kCancelled) cancelled = true;
+    };
+    if (at_once) {
+      parallel_for_chunks(int64_t(doc.meshes.size()), threads, [&](int64_t b, int64_t e) {
+        for (int64_t i = b; i < e && !cancelled; ++i) refine_one(size_t(i), 1);
+      });
+    } else {
+      for (size_t i = 0; i < doc.meshes.size() && !cancelled; ++i) refine_one(i, rq.options.refine.threads);
+    }
+    if (cancelled) {
+      result->cancelled = true;
+      return Status::Ok();
+    }
+    for (const RefineStats& st : per_mesh) {
+      ms_topology += st.ms_topology;
+      ms_refine += st.ms_refine;
+    }
+    if (at_once && ms_topology + ms_refine > 0) {
+      // The meshes' own times overlap: the phase's wall time, split between
+      // topology and refinement as theirs are.
+      const double wall = now() - t_decoded, share = ms_topology / (ms_topology + ms_refine);
+      ms_topology = wall * share;
+      ms_refine = wall - ms_topology;
     }
   } else {
     per_mesh.clear();

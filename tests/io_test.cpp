@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <memory>
 #include <random>
 #include <thread>
@@ -376,6 +377,58 @@ TEST(Io, DracoPrimitivesOnTwoThreadsGiveTheSameBytes) {
     int64_t dropped = 0;
     for (const MeshSlot& s : back.meshes) dropped += s.dropped_faces;
     EXPECT_EQ(triangles(back) + dropped, c2.triangles);
+  }
+}
+
+TEST(Io, SeveralMeshesRefinedAtOnceGiveTheSameJob) {
+  // Three meshes in one GLB, refined by run_job on one thread (one after
+  // another) and on two (at once, a thread each): the same output bytes and
+  // the same statistics but for the timings, and as many progress calls.
+  Document doc;
+  for (const char* name : {"bunny-npm.obj", "knot.obj", "suzanne.obj"}) {
+    Document one;
+    ASSERT_TRUE(test::load(test::data_dir() + "/" + name, &one).ok()) << name;
+    doc.meshes.push_back(std::move(one.meshes[0]));
+  }
+  OutputOptions plain;
+  plain.draco = false;
+  std::vector<uint8_t> glb;
+  WriteCounts wc;
+  ASSERT_TRUE(write_document(doc, plain, "glb", nullptr, &glb, &wc).ok());
+  std::function<void(nlohmann::json&)> strip_times = [&](nlohmann::json& j) {
+    if (j.is_object()) {
+      for (const char* key : {"ms", "timings_ms"}) j.erase(key);
+      for (auto& v : j) strip_times(v);
+    } else if (j.is_array()) {
+      for (auto& v : j) strip_times(v);
+    }
+  };
+  for (const char* mode : {"iteas", "uniform"}) {
+    SCOPED_TRACE(mode);
+    std::vector<uint8_t> out[2];
+    nlohmann::json stats[2];
+    int calls[2] = {0, 0};
+    for (int t = 0; t < 2; ++t) {
+      JobRequest rq;
+      rq.data = glb.data();
+      rq.size = glb.size();
+      rq.output_format = "obj";
+      rq.options.refine.mode = std::string(mode) == "iteas" ? Mode::kIteas : Mode::kUniform;
+      rq.options.refine.levels = 2;
+      rq.options.refine.threads = t + 1;
+      JobHooks hooks;
+      hooks.progress = [&calls, t](int, const char*, double) { ++calls[t]; };
+      JobResult res;
+      const Status s = run_job(rq, hooks, &res);
+      ASSERT_TRUE(s.ok()) << s.message;
+      out[t] = res.bytes;
+      stats[t] = res.stats;
+      strip_times(stats[t]);
+    }
+    EXPECT_EQ(out[0], out[1]);
+    EXPECT_EQ(stats[0], stats[1]);
+    EXPECT_EQ(calls[0], calls[1]);
+    EXPECT_EQ(stats[1]["meshes"].size(), 3u);
   }
 }
 
