@@ -1321,8 +1321,9 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         butterfly_points(s.bctx, list, n, m.positions.data(), points);
         for (int i = 0; i < n; ++i) {
           const int32_t c = list[i], oc = opp[c];
-          dev[c] = edge_deviation(s, m, c, &points[3 * i]);
-          if (oc >= 0) dev[oc] = dev[c];
+          float d = edge_deviation(s, m, c, &points[3 * i]);
+          dev[c] = d;
+          if (oc >= 0) __atomic_store(&dev[oc], &d, __ATOMIC_RELAXED);
         }
         n = 0;
       };
@@ -1331,8 +1332,14 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         // is carried, and the test then costs no mispredicted branch (whether
         // a corner is its edge's first follows no pattern). Both corners of
         // a carried edge are carried, with the same deviation (CarriedAngles),
-        // so the corner's own tells.
-        if (dev[c] >= 0.0f) continue;
+        // so the corner's own tells. The second corner of an edge whose
+        // first lies in another thread's range is written by that thread
+        // while this one may test it (and pass over it either way, as not
+        // its edge's first): both accesses are relaxed atomic (plain moves
+        // on x86), so no data race.
+        float own;
+        __atomic_load(&dev[c], &own, __ATOMIC_RELAXED);
+        if (own >= 0.0f) continue;
         const int32_t oc = opp[c];
         if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
         list[n] = c;

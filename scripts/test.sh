@@ -3,7 +3,8 @@
 # unit and property tests, the OpenMesh differential test, the CLI over every
 # mesh checked by the Khronos validator and draco3d, then the readers and the
 # broken-file checks and the server tests again under AddressSanitizer + UBSan,
-# and the server tests under ThreadSanitizer.
+# and the core's and the job's parallel steps and the server tests under
+# ThreadSanitizer.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ITEAS_TEST_PACKAGES=1 scripts/setup.sh build Release
@@ -23,9 +24,15 @@ ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_JS_ONLY=broken n
 ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_CORPUS=/nonexistent \
   ITEAS_JS_ONLY=errors,auth,backpressure node --test tests/js/server.test.mjs
 
-echo "[test] ThreadSanitizer build: the server tests"
-cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=Tsan -DBUILD_TESTING=OFF >/dev/null
-ninja -C build-tsan iteas
+echo "[test] ThreadSanitizer build: the core on two threads, the job's parallel steps, the server tests"
+cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=Tsan >/dev/null
+ninja -C build-tsan iteas io_test refine_test
+# One and two threads on the shipped meshes of up to 4,000 triangles (both
+# modes), several meshes refined and several Draco payloads encoded at once.
+ITEAS_TEST_MAX_FACES=4000 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" \
+  build-tsan/tests/refine_test --gtest_filter='*SameOutputForOneAndTwoThreads*' --gtest_brief=1
+TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" ITEAS_CORPUS=/nonexistent \
+  build-tsan/tests/io_test --gtest_filter='Io.SeveralMeshes*:Io.DracoPrim*' --gtest_brief=1
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp" ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
   ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure node --test tests/js/server.test.mjs
 echo "[test] all passed"
