@@ -233,6 +233,15 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void unit_normals(const float* 
   }
 }
 
+void face_normals(const Mesh& mesh, const int32_t* faces, int64_t n, double* nx, double* ny, double* nz) {
+  PointBlock points;
+  for (int64_t i0 = 0; i0 < n; i0 += PointBlock::kSize) {
+    const int k = int(std::min<int64_t>(PointBlock::kSize, n - i0));
+    points.gather(mesh, faces, i0, k);
+    unit_normals(points.at, k, nx + i0, ny + i0, nz + i0);
+  }
+}
+
 // Per edge of a block (both unit normals gathered, one array per
 // coordinate): angle_between's sine and cosine (its operations, so its
 // bits), then atan2_pos in degrees, in double.
@@ -282,7 +291,6 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     Array<int32_t> slot(kFaces), faces(4 * kFaces + 1), edges(9 * kFaces + 3);
     Array<double> normals;
     constexpr int kBlock = PointBlock::kSize;
-    PointBlock points;
     double gathered[6][kBlock];
     const double* g6[6];
     for (int j = 0; j < 6; ++j) g6[j] = gathered[j];
@@ -353,11 +361,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       }
       // The normals, a block of faces at a time.
       normals.resize(3 * size_t(nl));
-      for (int64_t i0 = 0; i0 < nl; i0 += kBlock) {
-        const int n = int(std::min<int64_t>(kBlock, nl - i0));
-        points.gather(mesh, fl, i0, n);
-        unit_normals(points.at, n, &normals[i0], &normals[nl + i0], &normals[2 * nl + i0]);
-      }
+      face_normals(mesh, fl, nl, &normals[0], &normals[nl], &normals[2 * size_t(nl)]);
       // The angles of the edges whose faces both have a normal, a block at a
       // time. An angle rounds to the float the library's atan2 gives, but
       // where it lies within 1e-12 of it (far beyond atan2_pos's error, a

@@ -16,6 +16,10 @@ namespace iteas {
 // Unit normal of face f in double; returns false for a zero-area face.
 bool face_normal(const Mesh& mesh, int32_t f, double n[3]);
 
+// Unit normals of faces[0, n), one array per coordinate: face_normal's bits
+// (its operations, vectorised), NaN where it says zero area.
+void face_normals(const Mesh& mesh, const int32_t* faces, int64_t n, double* nx, double* ny, double* nz);
+
 // Angle in degrees between the normals of faces f and g; NaN if either has
 // zero area.
 float normal_angle(const Mesh& mesh, int32_t f, int32_t g);

@@ -1218,17 +1218,18 @@ void face_max_theta(const State& s, const Mesh& m, std::vector<float>& out) {
 // (the sum of its faces' unit normals). A tangential shift, as beside a
 // boundary of a flat patch, leaves the surface where it is. Without a usable
 // normal (zero-area faces, a full fold) the whole distance counts.
-// |p|: the edge's Butterfly point.
-float edge_deviation(const State& s, const Mesh& m, int32_t c, const float* p) {
+// |p|: the edge's Butterfly point; |f1|, |f2|: the unit normals of the faces
+// of c and of its opposite (face_normals: NaN for a zero-area face), f2 null
+// at a boundary.
+float edge_deviation(const Mesh& m, int32_t c, const float* p, const double* f1, const double* f2) {
   const float* a = &m.positions[3 * size_t(m.corner_vertex[next_corner(c)])];
   const float* b = &m.positions[3 * size_t(m.corner_vertex[prev_corner(c)])];
   double d[3], n[3] = {0, 0, 0};
   for (int j = 0; j < 3; ++j) d[j] = double(p[j]) - 0.5 * (double(a[j]) + double(b[j]));
   const double whole = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-  for (const int32_t k : {c, s.ct.opposites()[c]}) {
-    double f[3];
-    if (k < 0) continue;
-    if (!face_normal(m, k / 3, f)) return float(whole);
+  for (const double* f : {f1, f2}) {
+    if (!f) continue;
+    if (std::isnan(f[0])) return float(whole);
     for (int j = 0; j < 3; ++j) n[j] += f[j];
   }
   const double nl = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
@@ -1311,17 +1312,27 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     }
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
       // A block of edges at a time: their Butterfly points in one call
-      // (as the data pass makes them), then their deviations.
+      // (as the data pass makes them), their faces' normals in another
+      // (vectorised), then their deviations.
       constexpr int kBlock = 256;
-      int32_t list[kBlock];
+      int32_t list[kBlock], faces[2 * kBlock];
       float points[3 * kBlock];
+      double nx[2 * kBlock], ny[2 * kBlock], nz[2 * kBlock];
       int n = 0;
       auto flush = [&] {
         if (n == 0) return;
         butterfly_points(s.bctx, list, n, m.positions.data(), points);
         for (int i = 0; i < n; ++i) {
           const int32_t c = list[i], oc = opp[c];
-          float d = edge_deviation(s, m, c, &points[3 * i]);
+          faces[2 * i] = c / 3;
+          faces[2 * i + 1] = oc >= 0 ? oc / 3 : c / 3;  // (at a boundary, not read)
+        }
+        face_normals(m, faces, 2 * n, nx, ny, nz);
+        for (int i = 0; i < n; ++i) {
+          const int32_t c = list[i], oc = opp[c];
+          const double f1[3] = {nx[2 * i], ny[2 * i], nz[2 * i]};
+          const double f2[3] = {nx[2 * i + 1], ny[2 * i + 1], nz[2 * i + 1]};
+          float d = edge_deviation(m, c, &points[3 * i], f1, oc >= 0 ? f2 : nullptr);
           dev[c] = d;
           if (oc >= 0) __atomic_store(&dev[oc], &d, __ATOMIC_RELAXED);
         }
