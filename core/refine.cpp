@@ -1289,7 +1289,6 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
   if (deviations.load()) {
     // Each edge once (from its first corner), for the faces that need it.
     const int32_t* opp = s.ct.opposites().data();
-    auto needs = [&](int32_t c) { return c >= 0 && verdict[c / 3] >= kJudgeTolerance; };
     // -1: not computed (a deviation is never negative).
     std::vector<float> dev(nc, -1.0f);
     State::Carried& carried = s.carried;
@@ -1338,6 +1337,8 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         }
         n = 0;
       };
+      float* const dv = dev.data();
+      const uint8_t* const vd = verdict.data();
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         // The carried test first: after the first levels nearly every edge
         // is carried, and the test then costs no mispredicted branch (whether
@@ -1349,12 +1350,16 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         // its edge's first): both accesses are relaxed atomic (plain moves
         // on x86), so no data race.
         float own;
-        __atomic_load(&dev[c], &own, __ATOMIC_RELAXED);
+        __atomic_load(&dv[c], &own, __ATOMIC_RELAXED);
         if (own >= 0.0f) continue;
+        // Listed without a branch: which uncarried edges are their edge's
+        // first and need a deviation follows no pattern.
         const int32_t oc = opp[c];
-        if ((oc >= 0 && oc < c) || !(needs(c) || needs(oc))) continue;
+        const int first = int(oc < 0) | int(oc > c);
+        const int need = int(vd[c / 3] >= kJudgeTolerance) | int(oc >= 0 && vd[(oc < 0 ? 0 : oc) / 3] >= kJudgeTolerance);
         list[n] = c;
-        if (++n == kBlock) flush();
+        n += first & need;
+        if (n == kBlock) flush();
       }
       flush();
     }, 1536);
