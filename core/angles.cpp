@@ -702,6 +702,26 @@ double smallest_angle_sin2(const double* p, const double* q, const double* r) {
   return (cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2]) * std::min(e0, std::min(e1, e2)) / prod;
 }
 
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES void smallest_angle_sin2s(const double* const* pqr, int n, double* out) {
+  const double *__restrict px = pqr[0], *__restrict py = pqr[1], *__restrict pz = pqr[2];
+  const double *__restrict qx = pqr[3], *__restrict qy = pqr[4], *__restrict qz = pqr[5];
+  const double *__restrict rx = pqr[6], *__restrict ry = pqr[7], *__restrict rz = pqr[8];
+  double* __restrict o = out;
+  for (int i = 0; i < n; ++i) {
+    const double u0 = qx[i] - px[i], u1 = qy[i] - py[i], u2 = qz[i] - pz[i];
+    const double w0 = rx[i] - px[i], w1 = ry[i] - py[i], w2 = rz[i] - pz[i];
+    const double z0 = rx[i] - qx[i], z1 = ry[i] - qy[i], z2 = rz[i] - qz[i];
+    const double c0 = u1 * w2 - u2 * w1, c1 = u2 * w0 - u0 * w2, c2 = u0 * w1 - u1 * w0;
+    const double e0 = z0 * z0 + z1 * z1 + z2 * z2;
+    const double e1 = w0 * w0 + w1 * w1 + w2 * w2;
+    const double e2 = u0 * u0 + u1 * u1 + u2 * u2;
+    const double prod = e0 * e1 * e2;
+    const double m12 = e2 < e1 ? e2 : e1, emin = m12 < e0 ? m12 : e0;  // std::min's selects
+    const double v = (c0 * c0 + c1 * c1 + c2 * c2) * emin / prod;
+    o[i] = prod <= 0 ? -1.0 : v;
+  }
+}
+
 // Per face of a block (its corners' points gathered per coordinate: a, q, r
 // times x, y, z): the atan2 arguments of its smallest angle in double
 // arithmetic, rounded to float — y = |cross| (twice the area), x = (e_a +

@@ -92,4 +92,9 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads = 1);
 // and sin² orders angles up to 60°. Negative when two points coincide.
 double smallest_angle_sin2(const double* p, const double* q, const double* r);
 
+// smallest_angle_sin2 of triangles i < n whose points p, q, r lie in nine
+// arrays (p's x, y, z, then q's, then r's): its operations, vectorised, so
+// its values bit for bit.
+void smallest_angle_sin2s(const double* const* pqr, int n, double* out);
+
 }  // namespace iteas

@@ -656,8 +656,10 @@ void guard_point(const double* a, const double* b, const float* butterfly, int s
 // (ca, bc, c), (bc, ca, m), with ca and bc on the parent's other edges, and the
 // halves (a, m) and (m, b) may then be bisected (the greens born inside that
 // split). Checked with ca, bc and the halves' points at their midpoints, where
-// the sliver guard of that later level can always put them.
-bool poor_merge(const double* a, const double* m, const double* b, const double* c, double f2) {
+// the sliver guard of that later level can always put them: tri(p, q, r) is
+// called for each of those eight triangles in turn, until it returns true.
+template <typename F>
+bool merge_triangles(const double* a, const double* m, const double* b, const double* c, F&& tri) {
   double ca[3], bc[3], am[3], mb[3];
   for (int i = 0; i < 3; ++i) {
     ca[i] = 0.5 * (c[i] + a[i]);
@@ -665,9 +667,13 @@ bool poor_merge(const double* a, const double* m, const double* b, const double*
     am[i] = 0.5 * (a[i] + m[i]);
     mb[i] = 0.5 * (m[i] + b[i]);
   }
-  return below_floor(a, m, ca, f2) || below_floor(m, b, bc, f2) || below_floor(ca, bc, c, f2) ||
-         below_floor(bc, ca, m, f2) || below_floor(a, am, ca, f2) || below_floor(am, m, ca, f2) ||
-         below_floor(m, mb, bc, f2) || below_floor(mb, b, bc, f2);
+  return tri(a, m, ca) || tri(m, b, bc) || tri(ca, bc, c) || tri(bc, ca, m) || tri(a, am, ca) || tri(am, m, ca) ||
+         tri(m, mb, bc) || tri(mb, b, bc);
+}
+bool poor_merge(const double* a, const double* m, const double* b, const double* c, double f2) {
+  return merge_triangles(a, m, b, c, [f2](const double* p, const double* q, const double* r) {
+    return below_floor(p, q, r, f2);
+  });
 }
 
 // Would bisecting face f at its one split edge make a triangle whose smallest
@@ -686,15 +692,37 @@ bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint
   load_point(m, m.corner_vertex[3 * f + k], apex);
   load_point(m, m.corner_vertex[3 * f + (k + 1) % 3], a);
   load_point(m, m.corner_vertex[3 * f + (k + 2) % 3], b);
-  const double f2 = s.floor_sin2;
   // Every point the guard may leave on the edge (t = 1, 1/2, ..., 0 of the
-  // displacement): the two green triangles and the pair's later merge.
+  // displacement): the two green triangles and the pair's later merge. All
+  // fifty triangles are listed, then measured in one vectorised loop
+  // (smallest_angle_sin2's bits): nearly always none is under the floor,
+  // and each would have been measured anyway.
+  constexpr int kTriangles = 10 * (kGuardSteps + 1);
+  double coords[9][kTriangles];
+  int n = 0;
+  auto add = [&](const double* p, const double* q, const double* r) {
+    for (int k = 0; k < 3; ++k) {
+      coords[k][n] = p[k];
+      coords[3 + k][n] = q[k];
+      coords[6 + k][n] = r[k];
+    }
+    ++n;
+    return false;  // list them all
+  };
   for (int step = 0; step <= kGuardSteps; ++step) {
     double mid[3];
     guard_point(a, b, bf, step, mid);
-    if (below_floor(a, mid, apex, f2) || below_floor(mid, b, apex, f2) || poor_merge(a, mid, b, apex, f2))
-      return true;
+    add(a, mid, apex);
+    add(mid, b, apex);
+    merge_triangles(a, mid, b, apex, add);
   }
+  const double* pqr[9];
+  for (int j = 0; j < 9; ++j) pqr[j] = coords[j];
+  double sin2[kTriangles];
+  smallest_angle_sin2s(pqr, n, sin2);
+  const double f2 = s.floor_sin2;
+  for (int i = 0; i < n; ++i)
+    if (sin2[i] < f2) return true;
   return false;
 }
 

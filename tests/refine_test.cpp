@@ -8,6 +8,7 @@
 #include <iterator>
 #include <cstring>
 #include <map>
+#include <random>
 
 #include "core/butterfly.h"
 #include "core/corner_table.h"
@@ -283,6 +284,40 @@ TEST(Refine, FourIteasLevelsKeepHalfTheSmallestAngle) {
         << c.name << ": " << st.quality_before.min_angle << " -> " << st.quality_after.min_angle;
   }
   EXPECT_GE(closed, 3);
+}
+
+// The sliver checks measure their triangles in one vectorised loop
+// (smallest_angle_sin2s): the same values, bit for bit, as the scalar
+// routine, on random triangles, nearly flat ones, repeated points and a
+// point at infinity.
+TEST(Refine, VectorisedSmallestAnglesMatchTheScalarOnes) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  constexpr int n = 203;  // not a multiple of any vector width
+  std::vector<double> coords(9 * n);
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < 9; ++j) coords[j * n + i] = u(rng);
+    if (i % 7 == 1)
+      for (int j = 0; j < 3; ++j) coords[(6 + j) * n + i] = coords[j * n + i];  // r = p
+    if (i % 11 == 2)  // r on the line through p and q: nearly flat
+      for (int j = 0; j < 3; ++j) coords[(6 + j) * n + i] = 0.5 * (coords[j * n + i] + coords[(3 + j) * n + i]);
+    if (i == 5) coords[3 * n + i] = INFINITY;
+  }
+  const double* pqr[9];
+  for (int j = 0; j < 9; ++j) pqr[j] = coords.data() + j * n;
+  std::vector<double> wide(n);
+  smallest_angle_sin2s(pqr, n, wide.data());
+  for (int i = 0; i < n; ++i) {
+    double p[3], q[3], r[3];
+    for (int k = 0; k < 3; ++k) {
+      p[k] = pqr[k][i];
+      q[k] = pqr[3 + k][i];
+      r[k] = pqr[6 + k][i];
+    }
+    const double one = smallest_angle_sin2(p, q, r);
+    EXPECT_TRUE(std::memcmp(&one, &wide[size_t(i)], sizeof one) == 0 || (std::isnan(one) && std::isnan(wide[size_t(i)])))
+        << i << ": " << one << " against " << wide[size_t(i)];
+  }
 }
 
 // Refined levels rebuild their corner table without walking every fan: the
