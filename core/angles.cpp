@@ -361,7 +361,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       }
       // The normals, a block of faces at a time.
       normals.resize(3 * size_t(nl));
-      face_normals(mesh, fl, nl, &normals[0], &normals[nl], &normals[2 * size_t(nl)]);
+      face_normals(mesh, fl, nl, normals.data(), normals.data() + nl, normals.data() + 2 * size_t(nl));
       // The angles of the edges whose faces both have a normal, a block at a
       // time. An angle rounds to the float the library's atan2 gives, but
       // where it lies within 1e-12 of it (far beyond atan2_pos's error, a
