@@ -1384,7 +1384,8 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         // first and need a deviation follows no pattern.
         const int32_t oc = opp[c];
         const int first = int(oc < 0) | int(oc > c);
-        const int need = int(vd[c / 3] >= kJudgeTolerance) | int(oc >= 0 && vd[(oc < 0 ? 0 : oc) / 3] >= kJudgeTolerance);
+        // (At a boundary the other face is c's own.)
+        const int need = int(vd[c / 3] >= kJudgeTolerance) | int(vd[(oc < 0 ? c : oc) / 3] >= kJudgeTolerance);
         list[n] = c;
         n += first & need;
         if (n == kBlock) flush();
