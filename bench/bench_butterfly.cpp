@@ -23,11 +23,17 @@
 // A fourth runs meshes with attributes (normals, tangents, texture
 // coordinates, skin weights), ours alone, against the same meshes stripped
 // to their positions.
-// Each timed run follows an untimed run of the same configuration (the
-// same library, threads and statistics), the configurations alternating
-// from one repetition to the next: every figure is that of a process
-// refining meshes of the kind one after another. Timed right after another
-// configuration, a run pays for what that one left behind. In the order
+// Each timed run follows untimed runs of the same configuration (the same
+// library, threads and statistics) for at least 5 ms (one run at least), the
+// configurations alternating from one repetition to the next: every figure
+// is that of a process refining meshes of the kind one after another. Timed
+// right after another configuration, a run pays for what that one left
+// behind, for milliseconds: bunny-npm level 1 on one thread without
+// statistics (0.13 ms) took 0.126-0.128 ms after itself, 0.135-0.146 ms
+// after one run with statistics and one without, 0.135 ms after seven
+// without, and 0.130 ms after thirty; a chain of dependent multiplies right
+// after the run with statistics ran 5.5 % slower (in part a lower clock). One
+// untimed run, as before, left level 1's figure 10-15 % low. In the order
 // used before (OpenMesh, ours 1T, ours 2T, ours 1T without statistics, ours
 // 2T without), bunny-npm level 2 on one thread without statistics took
 // 0.56-0.58 ms against 0.50 ms right after OpenMesh and 0.47 ms after
@@ -108,11 +114,20 @@ static Run ours(const iteas::Mesh& input, int levels, int threads, bool statisti
   return {s, m.num_faces(), iteas::peak_heap_bytes() - before};
 }
 
-// A timed run after an untimed one of the same configuration (see the
-// top of the file): what a process refining meshes of the kind one after
-// another gets.
+// Runs |job| untimed until at least kWarmUp has passed (once at least).
+constexpr double kWarmUp = 5e-3;
+template <typename Job>
+static void warm_up(const Job& job) {
+  const auto t0 = Clock::now();
+  do job();
+  while (std::chrono::duration<double>(Clock::now() - t0).count() < kWarmUp);
+}
+
+// A timed run after untimed ones of the same configuration (see the top of
+// the file): what a process refining meshes of the kind one after another
+// gets.
 static Run ours_again(const iteas::Mesh& input, int levels, int threads, bool statistics = true) {
-  ours(input, levels, threads, statistics);
+  warm_up([&] { ours(input, levels, threads, statistics); });
   return ours(input, levels, threads, statistics);
 }
 
@@ -213,7 +228,7 @@ int main(int argc, char** argv) {
     Run om_last{}, one_last{};
     for (int r = 0; r < reps; ++r) {
       // Each configuration once untimed, then timed.
-      openmesh(input, c.level);
+      warm_up([&] { openmesh(input, c.level); });
       om_last = openmesh(input, c.level);
       om_t.push_back(om_last.seconds);
       om_bt.push_back(om_last.build_seconds + om_last.seconds);
@@ -279,8 +294,8 @@ int main(int argc, char** argv) {
   // Two jobs at once, one thread each, as the server runs them (one thread
   // per job, as many jobs as workers), against one job alone and one job on
   // two threads, without statistics. Jobs per second of the pair: 2 over
-  // the later of the two to finish, each timed run after an untimed one of
-  // its own and both timed runs started together.
+  // the later of the two to finish, each timed run after untimed ones of
+  // its own (warm_up) and both timed runs started together.
   std::printf("\n| mesh | level | one job, 1T ms | two jobs at once ms | two jobs at once vs one job (jobs/s) | "
               "one job, 2T ms | one job 2T vs 1T |\n|---|---:|---:|---:|---:|---:|---:|\n");
   for (const Case& c : cases) {
@@ -293,7 +308,7 @@ int main(int argc, char** argv) {
       std::atomic<int> ready{0};
       double other = 0;
       auto job = [&input, &c, &ready](double* out) {
-        ours(input, c.level, 1, false);
+        warm_up([&] { ours(input, c.level, 1, false); });
         ready.fetch_add(1);
         while (ready.load() < 2) {
         }
