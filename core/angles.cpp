@@ -209,6 +209,100 @@ struct PointBlock {
   }
 };
 
+// Per face of a block (its corners' points gathered per coordinate: a, q, r
+// times x, y, z): the atan2 arguments of its smallest angle in double
+// arithmetic, rounded to float — y = |cross| (twice the area), x = (e_a +
+// e_b - e_min) / 2 — and y = NaN when two of its points coincide (no angles).
+// One vectorised loop (builtins, not std:: calls, as in sine_cosine).
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void smallest_angle_arguments(const float* const* __restrict pt, int n,
+                                                                             float* __restrict ys,
+                                                                             float* __restrict xs) {
+  const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
+  const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
+  const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
+  for (int i = 0; i < n; ++i) {
+    const double u0 = double(qx[i]) - ax[i], u1 = double(qy[i]) - ay[i], u2 = double(qz[i]) - az[i];
+    const double w0 = double(rx[i]) - ax[i], w1 = double(ry[i]) - ay[i], w2 = double(rz[i]) - az[i];
+    const double z0 = double(rx[i]) - qx[i], z1 = double(ry[i]) - qy[i], z2 = double(rz[i]) - qz[i];
+    const double cx = u1 * w2 - u2 * w1, cy = u2 * w0 - u0 * w2, cz = u0 * w1 - u1 * w0;
+    const double e0 = z0 * z0 + z1 * z1 + z2 * z2;
+    const double e1 = w0 * w0 + w1 * w1 + w2 * w2;
+    const double e2 = u0 * u0 + u1 * u1 + u2 * u2;
+    const double m12 = e1 < e2 ? e1 : e2, emin = e0 < m12 ? e0 : m12;
+    const bool ok = (e0 > 0) & (e1 > 0) & (e2 > 0);  // no branches: selects vectorise
+    const float y = float(__builtin_sqrt(cx * cx + cy * cy + cz * cz));
+    ys[i] = ok ? y : __builtin_nanf("");
+    xs[i] = float(0.5 * (e0 + e1 + e2 - 2.0 * emin));
+  }
+}
+
+// face_normals_or_nan's normals of the faces whose points are gathered in pt
+// (a, q, r times x, y, z): the same operations on the same floats (its edge
+// vectors are the same differences of the gathered points), so its bits.
+ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void normals_of_points(const float* const* __restrict pt, int n,
+                                                                        float* __restrict out) {
+  const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
+  const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
+  const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
+  float nx[PointBlock::kSize], ny[PointBlock::kSize], nz[PointBlock::kSize];
+  for (int i = 0; i < n; ++i) {
+    const float ux = qx[i] - ax[i], uy = qy[i] - ay[i], uz = qz[i] - az[i];
+    const float wx = rx[i] - ax[i], wy = ry[i] - ay[i], wz = rz[i] - az[i];
+    const float x = uy * wz - uz * wy;
+    const float y = uz * wx - ux * wz;
+    const float z = ux * wy - uy * wx;
+    const float len2 = x * x + y * y + z * z;
+    const float scale = ux * ux + uy * uy + uz * uz + wx * wx + wy * wy + wz * wz;
+    const bool ok = len2 > 1e-20f * scale * scale && len2 <= __FLT_MAX__;
+    const float inv = 1.0f / __builtin_sqrtf(len2);
+    const float nan = __builtin_nanf("");
+    nx[i] = ok ? x * inv : nan;
+    ny[i] = ok ? y * inv : nan;
+    nz[i] = ok ? z * inv : nan;
+  }
+  for (int i = 0; i < n; ++i) { out[3 * i] = nx[i]; out[3 * i + 1] = ny[i]; out[3 * i + 2] = nz[i]; }
+}
+
+// Triangle quality gathered a block of faces at a time (triangle_quality,
+// and summarize_angles when it is asked for it as well): the smallest angle
+// per face, its minimum and a histogram of 0.01-degree bins over [0, 60].
+// Counts and a minimum do not depend on the order of the blocks.
+struct QualityTally {
+  static constexpr int kBins = 6001;
+  Array<int32_t> bins;  // a piece holds fewer than 2^31 faces
+  float lo = 180.0f;
+  explicit QualityTally(bool on = true) : bins(on ? kBins : 0, 0) {}
+  void add(const PointBlock& points, int n) {
+    float ys[PointBlock::kSize], xs[PointBlock::kSize], angles[PointBlock::kSize];
+    smallest_angle_arguments(points.at, n, ys, xs);
+    atan2_degrees(ys, xs, angles, n);
+    int32_t* const h = bins.data();
+    float low = lo;
+    for (int i = 0; i < n; ++i) {
+      if (std::isnan(angles[i])) continue;  // repeated position: no angles
+      low = std::min(low, angles[i]);
+      ++h[std::min(kBins - 1, int(angles[i] * 100.0f))];
+    }
+    lo = low;
+  }
+};
+
+// The summary of the tallies merged into |all| and |min_angle|.
+static QualitySummary quality_summary(const Array<int64_t>& all, float min_angle) {
+  QualitySummary q;
+  int64_t total = 0;
+  for (int i = 0; i < QualityTally::kBins; ++i) total += all[i];
+  if (total == 0) return QualitySummary();
+  q.min_angle = double(min_angle);
+  const int64_t rank = std::max<int64_t>(1, int64_t(std::ceil(0.01 * double(total))));
+  int64_t seen = 0;
+  for (int i = 0; i < QualityTally::kBins; ++i) {
+    seen += all[i];
+    if (seen >= rank) { q.p1_angle = std::max(q.min_angle, i / 100.0); break; }
+  }
+  return q;
+}
+
 // Unit normals in double of the faces whose points are gathered in pt (a,
 // q, r times x, y, z), with face_normal's operations in its order, so its
 // bits; NaN where face_normal says zero area (or not finite). (Doubles only,
@@ -534,7 +628,7 @@ __attribute__((target("avx2"))) void tally_avx2(const float* t, int64_t n, const
 #endif
 
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
-                              double threshold, double exclude, int threads) {
+                              double threshold, double exclude, int threads, QualitySummary* quality) {
   // The sum of the angles is kept exactly (AngleTally). Counts, the
   // maximum and an exact sum do not depend on the order in which they are
   // gathered, so each piece of the loop adds its own into the total under a
@@ -551,6 +645,11 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   const int64_t nf = nc / 3;
   std::mutex mutex;
   AngleTally all;
+  // The triangle quality too, when asked for and the normals are computed
+  // here: each face's points gathered once for both.
+  const bool with_quality = quality && !theta;
+  Array<int64_t> quality_all(with_quality ? QualityTally::kBins : 0, 0);
+  float min_angle = 180.0f;
 #if ITEAS_X86_FEATURES
   const bool wide = cpu_has(CpuFeature::kAvx2);
   const TallyBounds bounds(threshold, exclude);
@@ -579,6 +678,8 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     };
     std::vector<std::vector<Waiting>> waiting(theta ? 0 : size_t((e - b + kFaces - 1) / kFaces));
     AngleTally tally;
+    QualityTally quality_tally(with_quality);
+    PointBlock points;
     auto count = [&](const float* angles, int n) {
       int i = 0;
 #if ITEAS_X86_FEATURES
@@ -607,7 +708,16 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         count(ts, n);
         continue;
       }
-      face_normals_or_nan(mesh, f0, f1, cache.data());
+      if (with_quality) {
+        for (int64_t g0 = f0; g0 < f1; g0 += PointBlock::kSize) {
+          const int k = int(std::min<int64_t>(PointBlock::kSize, f1 - g0));
+          points.gather(mesh, nullptr, g0, k);
+          normals_of_points(points.at, k, cache.data() + 3 * size_t(g0 - f0));
+          quality_tally.add(points, k);
+        }
+      } else {
+        face_normals_or_nan(mesh, f0, f1, cache.data());
+      }
       int n = 0;
       auto flush = [&] {
         sine_cosine(soa, n, ys, xs);
@@ -647,7 +757,12 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     }
     std::lock_guard<std::mutex> lock(mutex);
     all.merge(tally);
+    if (with_quality) {
+      min_angle = std::min(min_angle, quality_tally.lo);
+      for (int i = 0; i < QualityTally::kBins; ++i) quality_all[i] += quality_tally.bins[i];
+    }
   }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
+  if (with_quality) *quality = quality_summary(quality_all, min_angle);
   AngleSummary total;
   total.edges = all.edges;
   total.above = all.above;
@@ -722,33 +837,6 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES void smallest_angle_sin2s(const double
   }
 }
 
-// Per face of a block (its corners' points gathered per coordinate: a, q, r
-// times x, y, z): the atan2 arguments of its smallest angle in double
-// arithmetic, rounded to float — y = |cross| (twice the area), x = (e_a +
-// e_b - e_min) / 2 — and y = NaN when two of its points coincide (no angles).
-// One vectorised loop (builtins, not std:: calls, as in sine_cosine).
-ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void smallest_angle_arguments(const float* const* __restrict pt, int n,
-                                                                             float* __restrict ys,
-                                                                             float* __restrict xs) {
-  const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
-  const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
-  const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
-  for (int i = 0; i < n; ++i) {
-    const double u0 = double(qx[i]) - ax[i], u1 = double(qy[i]) - ay[i], u2 = double(qz[i]) - az[i];
-    const double w0 = double(rx[i]) - ax[i], w1 = double(ry[i]) - ay[i], w2 = double(rz[i]) - az[i];
-    const double z0 = double(rx[i]) - qx[i], z1 = double(ry[i]) - qy[i], z2 = double(rz[i]) - qz[i];
-    const double cx = u1 * w2 - u2 * w1, cy = u2 * w0 - u0 * w2, cz = u0 * w1 - u1 * w0;
-    const double e0 = z0 * z0 + z1 * z1 + z2 * z2;
-    const double e1 = w0 * w0 + w1 * w1 + w2 * w2;
-    const double e2 = u0 * u0 + u1 * u1 + u2 * u2;
-    const double m12 = e1 < e2 ? e1 : e2, emin = e0 < m12 ? e0 : m12;
-    const bool ok = (e0 > 0) & (e1 > 0) & (e2 > 0);  // no branches: selects vectorise
-    const float y = float(__builtin_sqrt(cx * cx + cy * cy + cz * cz));
-    ys[i] = ok ? y : __builtin_nanf("");
-    xs[i] = float(0.5 * (e0 + e1 + e2 - 2.0 * emin));
-  }
-}
-
 QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // Smallest angle per face; the 1st percentile comes from a histogram of
   // 0.01-degree bins over [0, 60]. The smallest angle lies opposite the
@@ -760,48 +848,26 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // in which they are gathered, so the pieces may be any size (a small level
   // is split over the threads too, where fixed chunks of 32768 faces left it
   // on one).
-  constexpr int kBins = 6001;
   const int32_t nf = mesh.num_faces();
   std::mutex mutex;
-  Array<int64_t> all(kBins, 0);
+  Array<int64_t> all(QualityTally::kBins, 0);
   float min_angle = 180.0f;
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block of faces: the points gathered, the atan2 arguments (double
     // arithmetic) and the angles (vectorised loops), then the minimum and
     // the histogram.
-    constexpr int kBlock = PointBlock::kSize;
-    float ys[kBlock], xs[kBlock], angles[kBlock];
     PointBlock points;
-    Array<int32_t> h(kBins, 0);  // a piece holds fewer than 2^31 faces
-    int32_t* bins = h.data();
-    float lo = 180.0f;
-    for (int32_t f0 = int32_t(b); f0 < int32_t(e); f0 += kBlock) {
-      const int n = int(std::min(int64_t(kBlock), e - f0));
+    QualityTally tally;
+    for (int32_t f0 = int32_t(b); f0 < int32_t(e); f0 += PointBlock::kSize) {
+      const int n = int(std::min(int64_t(PointBlock::kSize), e - f0));
       points.gather(mesh, nullptr, f0, n);
-      smallest_angle_arguments(points.at, n, ys, xs);
-      atan2_degrees(ys, xs, angles, n);
-      for (int i = 0; i < n; ++i) {
-        if (std::isnan(angles[i])) continue;  // repeated position: no angles
-        lo = std::min(lo, angles[i]);
-        ++bins[std::min(kBins - 1, int(angles[i] * 100.0f))];
-      }
+      tally.add(points, n);
     }
     std::lock_guard<std::mutex> lock(mutex);
-    min_angle = std::min(min_angle, lo);
-    for (int i = 0; i < kBins; ++i) all[i] += bins[i];
+    min_angle = std::min(min_angle, tally.lo);
+    for (int i = 0; i < QualityTally::kBins; ++i) all[i] += tally.bins[i];
   }, 2048);  // each piece adds 6001 bins: not too many pieces
-  QualitySummary q;
-  int64_t total = 0;
-  for (int i = 0; i < kBins; ++i) total += all[i];
-  if (total == 0) return QualitySummary();
-  q.min_angle = double(min_angle);
-  const int64_t rank = std::max<int64_t>(1, int64_t(std::ceil(0.01 * double(total))));
-  int64_t seen = 0;
-  for (int i = 0; i < kBins; ++i) {
-    seen += all[i];
-    if (seen >= rank) { q.p1_angle = std::max(q.min_angle, i / 100.0); break; }
-  }
-  return q;
+  return quality_summary(all, min_angle);
 }
 
 }  // namespace iteas

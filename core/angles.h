@@ -68,8 +68,13 @@ struct AngleSummary {
 // Summary over each interior edge once. Edges with theta >= |exclude_at_or_above|
 // (creases) are left out when it is > 0. |theta| may be null: computed on the fly.
 // Deterministic for any thread count (counts, the maximum and an exact sum).
+// With |quality| and without |theta| (the angles computed on the fly from
+// the faces' normals), it also writes triangle_quality(mesh)'s result, each
+// face's points gathered once for both (|quality| untouched with |theta|).
+struct QualitySummary;
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
-                              double threshold, double exclude_at_or_above = 0, int threads = 1);
+                              double threshold, double exclude_at_or_above = 0, int threads = 1,
+                              QualitySummary* quality = nullptr);
 
 // The threshold statistic: "mean", "median", "pNN" or a number of degrees.
 struct ThresholdSpec {

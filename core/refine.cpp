@@ -1545,6 +1545,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   std::vector<float> fmax;
   std::vector<int32_t> selected;
   AngleSummary last_after;
+  QualitySummary fused_quality;
+  bool quality_done = false;  // fused_quality describes the mesh as it is
   for (int level = 1; level <= o.levels; ++level) {
     if (cancelled()) { stats.stopped_by = "cancelled"; break; }
     const double lt0 = now();
@@ -1613,9 +1615,19 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       current_angles(s, m);
       note_peak(s, m, 0);
     }
+    // The last uniform level's summary computes each face's normal from its
+    // points: the triangle quality after refinement comes from the same
+    // gathered points (the mesh's positions do not change after it). A level
+    // is the last when the levels asked for are done or the budget leaves no
+    // room for another (a cancelled job's statistics are not reported).
+    const bool last = level == o.levels || (!adaptive && int64_t(m.num_faces()) * 4 > o.max_triangles) ||
+                      stats.stopped_by == "budget";
+    const bool fuse = statistics && last && !s.theta_current;
     const AngleSummary after =
-        statistics ? summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, ls.threshold, crease, s.threads)
+        statistics ? summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, ls.threshold, crease, s.threads,
+                                      fuse ? &fused_quality : nullptr)
                    : AngleSummary();
+    quality_done = fuse;
     last_after = after;
     ls.triangles_after = m.num_faces();
     ls.mean_theta_after = after.mean;
@@ -1637,7 +1649,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     stats.after = last_after;
   else if (statistics)
     stats.after = summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, stats.threshold, crease, s.threads);
-  if (statistics) stats.quality_after = triangle_quality(m, s.threads);
+  if (statistics) stats.quality_after = quality_done ? fused_quality : triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();
   stats.uniform_triangles = stats.triangles_in;

@@ -19,6 +19,7 @@
 #include "core/corner_table.h"
 #include "core/cpu_features.h"
 #include "core/parallel.h"
+#include "core/refine.h"
 #include "tests/support.h"
 
 namespace iteas {
@@ -564,6 +565,55 @@ TEST(Angles, SummaryTallyFollowsItsDefinition) {
 // computed at the other face's corner, the angles summed in another order)
 // gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
 // chunks did not: its rounding followed the order.)
+// The summary asked for the triangle quality as well gathers each face's
+// points once for its normals and the quality: the same summary as without,
+// and triangle_quality's result, on one to three threads; with angles given
+// (no normals computed) the quality is left alone. Subdivided meshes too, for
+// several 8192-face blocks and edges waiting for a later block.
+TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
+  std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
+  for (size_t i = 0, n = meshes.size(); i < n && i < 6; ++i) {
+    Mesh m = meshes[i].mesh;
+    RefineOptions o;
+    o.mode = Mode::kUniform;
+    o.levels = 2;
+    RefineHooks h;
+    h.statistics = false;
+    RefineStats st;
+    refine_mesh(m, o, h, &st);
+    meshes.push_back({meshes[i].name + " (uniform level 2)", m});
+  }
+  for (const test::NamedMesh& c : meshes) {
+    const Mesh& m = c.mesh;
+    CornerTable ct;
+    Mesh table_of = m;
+    ct.build(table_of, false, 1);
+    for (int threads : {1, 2, 3}) {
+      const std::string at = c.name + ", " + std::to_string(threads) + " threads";
+      const AngleSummary alone = summarize_angles(m, ct, nullptr, 20.0, 0, threads);
+      const QualitySummary expected = triangle_quality(m, threads);
+      QualitySummary q;
+      q.min_angle = q.p1_angle = -1;
+      const AngleSummary both = summarize_angles(m, ct, nullptr, 20.0, 0, threads, &q);
+      EXPECT_EQ(both.edges, alone.edges) << at;
+      EXPECT_EQ(both.mean, alone.mean) << at;
+      EXPECT_EQ(both.max, alone.max) << at;
+      EXPECT_EQ(both.above, alone.above) << at;
+      EXPECT_EQ(both.histogram, alone.histogram) << at;
+      EXPECT_EQ(q.min_angle, expected.min_angle) << at;
+      EXPECT_EQ(q.p1_angle, expected.p1_angle) << at;
+      Array<float> theta;
+      edge_angles(m, ct, theta, threads);
+      QualitySummary untouched;
+      untouched.min_angle = untouched.p1_angle = -1;
+      summarize_angles(m, ct, &theta, 20.0, 0, threads, &untouched);
+      EXPECT_EQ(untouched.min_angle, -1) << at;
+      EXPECT_EQ(untouched.p1_angle, -1) << at;
+    }
+  }
+  EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 8u : 26u);
+}
+
 TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
   const std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
   for (const test::NamedMesh& c : meshes) {

@@ -10,6 +10,7 @@
 #include <map>
 #include <random>
 
+#include "core/angles.h"
 #include "core/butterfly.h"
 #include "core/corner_table.h"
 #include "core/refine.h"
@@ -885,6 +886,46 @@ TEST(Refine, AdaptiveStatisticsCountTheSelectionsAngles) {
     }
   }
   EXPECT_GE(n, 10);
+}
+
+// The quality reported after refinement is triangle_quality of the output,
+// whichever way the refinement ends: a uniform job's last level computes it
+// with the level's angle summary (each face's points gathered once), others
+// afterwards.
+TEST(Refine, ReportedQualityIsTheOutputs) {
+  int n = 0;
+  for (const Case& c : cases(8000)) {
+    struct Variant {
+      Mode mode;
+      int levels;
+      int64_t budget;  // 0: none
+      double crease;
+    };
+    const int64_t f = c.mesh.num_faces();
+    const Variant variants[] = {{Mode::kUniform, 1, 0, 0},
+                                {Mode::kUniform, 2, 0, 0},
+                                {Mode::kUniform, 4, 16 * f, 0},  // stopped by the budget after level 2
+                                {Mode::kUniform, 2, 0, 30},
+                                {Mode::kIteas, 3, 0, 0}};
+    for (const Variant& v : variants)
+      for (int threads : {1, 2}) {
+        RefineOptions o = opts(v.mode, v.levels, threads);
+        if (v.budget > 0) o.max_triangles = v.budget;
+        o.crease_angle = v.crease;
+        Mesh m = c.mesh;
+        RefineStats st;
+        refine_mesh(m, o, RefineHooks(), &st);
+        const std::string at = c.name + ", levels " + std::to_string(v.levels) + ", " + std::to_string(threads) +
+                               " threads" + (v.budget ? ", budget" : "") + (v.crease > 0 ? ", creases" : "") +
+                               (v.mode == Mode::kIteas ? ", iteas" : "");
+        if (v.budget > 0 && v.mode == Mode::kUniform) EXPECT_EQ(st.stopped_by, "budget") << at;
+        const QualitySummary q = triangle_quality(m, 1);
+        EXPECT_EQ(st.quality_after.min_angle, q.min_angle) << at;
+        EXPECT_EQ(st.quality_after.p1_angle, q.p1_angle) << at;
+        ++n;
+      }
+  }
+  EXPECT_GE(n, 40);
 }
 
 TEST(Refine, CancellationIsHonoured) {
