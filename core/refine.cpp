@@ -1619,7 +1619,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     // points: the triangle quality after refinement comes from the same
     // gathered points (the mesh's positions do not change after it). A level
     // is the last when the levels asked for are done or the budget leaves no
-    // room for another (a cancelled job's statistics are not reported).
+    // room for another; a level after it (none runs) would clear the flag.
     const bool last = level == o.levels || (!adaptive && int64_t(m.num_faces()) * 4 > o.max_triangles) ||
                       stats.stopped_by == "budget";
     const bool fuse = statistics && last && !s.theta_current;
