@@ -272,6 +272,16 @@ struct QualityTally {
   Array<int32_t> bins;  // a piece holds fewer than 2^31 faces
   float lo = 180.0f;
   explicit QualityTally(bool on = true) : bins(on ? kBins : 0, 0) {}
+  // The total over pieces: the first piece's histogram taken over (no
+  // allocation), the others added into it (fewer than 2^31 faces in all).
+  void merge_into(Array<int32_t>& total, float& min_angle) {
+    min_angle = std::min(min_angle, lo);
+    if (total.empty()) {
+      total.swap(bins);
+      return;
+    }
+    for (int i = 0; i < kBins; ++i) total[i] += bins[i];
+  }
   void add(const PointBlock& points, int n) {
     float ys[PointBlock::kSize], xs[PointBlock::kSize], angles[PointBlock::kSize];
     smallest_angle_arguments(points.at, n, ys, xs);
@@ -288,10 +298,10 @@ struct QualityTally {
 };
 
 // The summary of the tallies merged into |all| and |min_angle|.
-static QualitySummary quality_summary(const Array<int64_t>& all, float min_angle) {
+static QualitySummary quality_summary(const Array<int32_t>& all, float min_angle) {
   QualitySummary q;
   int64_t total = 0;
-  for (int i = 0; i < QualityTally::kBins; ++i) total += all[i];
+  for (int i = 0; i < int(all.size()); ++i) total += all[i];
   if (total == 0) return QualitySummary();
   q.min_angle = double(min_angle);
   const int64_t rank = std::max<int64_t>(1, int64_t(std::ceil(0.01 * double(total))));
@@ -648,7 +658,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   // The triangle quality too, when asked for and the normals are computed
   // here: each face's points gathered once for both.
   const bool with_quality = quality && !theta;
-  Array<int64_t> quality_all(with_quality ? QualityTally::kBins : 0, 0);
+  Array<int32_t> quality_all;
   float min_angle = 180.0f;
 #if ITEAS_X86_FEATURES
   const bool wide = cpu_has(CpuFeature::kAvx2);
@@ -757,10 +767,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     }
     std::lock_guard<std::mutex> lock(mutex);
     all.merge(tally);
-    if (with_quality) {
-      min_angle = std::min(min_angle, quality_tally.lo);
-      for (int i = 0; i < QualityTally::kBins; ++i) quality_all[i] += quality_tally.bins[i];
-    }
+    if (with_quality) quality_tally.merge_into(quality_all, min_angle);
   }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
   if (with_quality) *quality = quality_summary(quality_all, min_angle);
   AngleSummary total;
@@ -850,7 +857,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
   // on one).
   const int32_t nf = mesh.num_faces();
   std::mutex mutex;
-  Array<int64_t> all(QualityTally::kBins, 0);
+  Array<int32_t> all;
   float min_angle = 180.0f;
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block of faces: the points gathered, the atan2 arguments (double
@@ -864,8 +871,7 @@ QualitySummary triangle_quality(const Mesh& mesh, int threads) {
       tally.add(points, n);
     }
     std::lock_guard<std::mutex> lock(mutex);
-    min_angle = std::min(min_angle, tally.lo);
-    for (int i = 0; i < QualityTally::kBins; ++i) all[i] += tally.bins[i];
+    tally.merge_into(all, min_angle);
   }, 2048);  // each piece adds 6001 bins: not too many pieces
   return quality_summary(all, min_angle);
 }
