@@ -89,11 +89,34 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void atan2_degrees(const float*
   for (int64_t i = 0; i < n; ++i) out[i] = fast_atan2_pos(y[i], x[i]) * float(180.0 / M_PI);
 }
 
+// Unit normals in single precision of the faces whose edge vectors u = q - a
+// and w = r - a are given (|n| at most 512), into out (3 per face); NaN for
+// a zero-area face (a cross product under 1e-10 of the squared edge lengths)
+// or a non-finite one. One vectorised loop, inlined into its callers' clones.
+ITEAS_SELECTS_VECTORISE __attribute__((always_inline)) static inline void normals_of_edges(
+    const float* __restrict ux, const float* __restrict uy, const float* __restrict uz, const float* __restrict wx,
+    const float* __restrict wy, const float* __restrict wz, int n, float* __restrict out) {
+  float nx[512], ny[512], nz[512];
+  for (int i = 0; i < n; ++i) {
+    const float x = uy[i] * wz[i] - uz[i] * wy[i];
+    const float y = uz[i] * wx[i] - ux[i] * wz[i];
+    const float z = ux[i] * wy[i] - uy[i] * wx[i];
+    const float len2 = x * x + y * y + z * z;
+    const float scale = ux[i] * ux[i] + uy[i] * uy[i] + uz[i] * uz[i] + wx[i] * wx[i] + wy[i] * wy[i] + wz[i] * wz[i];
+    // Not finite: len2 >= 0 unless NaN or infinite.
+    const bool ok = len2 > 1e-20f * scale * scale && len2 <= __FLT_MAX__;
+    const float inv = 1.0f / __builtin_sqrtf(len2);
+    const float nan = __builtin_nanf("");
+    nx[i] = ok ? x * inv : nan;
+    ny[i] = ok ? y * inv : nan;
+    nz[i] = ok ? z * inv : nan;
+  }
+  for (int i = 0; i < n; ++i) { out[3 * i] = nx[i]; out[3 * i + 1] = ny[i]; out[3 * i + 2] = nz[i]; }
+}
+
 // Unit normals in single precision for the statistics pass, faces [f0, f1)
-// into out (3 per face), NaN for a zero-area face (a cross product under
-// 1e-10 of the squared edge lengths) or a non-finite one. The edge vectors are
-// gathered per block, then the arithmetic runs as one vectorised loop (square
-// roots and divisions four at a time).
+// into out (3 per face): the edge vectors gathered per block, then
+// normals_of_edges (square roots and divisions four at a time).
 ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void face_normals_or_nan(const Mesh& mesh, int64_t f0, int64_t f1,
                                                                           float* out) {
   constexpr int kBlock = 512;
@@ -110,23 +133,7 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void face_normals_or_nan(const 
       ux[i] = q[0] - a[0]; uy[i] = q[1] - a[1]; uz[i] = q[2] - a[2];
       wx[i] = r[0] - a[0]; wy[i] = r[1] - a[1]; wz[i] = r[2] - a[2];
     }
-    float* o = out + 3 * size_t(b - f0);
-    float nx[kBlock], ny[kBlock], nz[kBlock];
-    for (int i = 0; i < n; ++i) {
-      const float x = uy[i] * wz[i] - uz[i] * wy[i];
-      const float y = uz[i] * wx[i] - ux[i] * wz[i];
-      const float z = ux[i] * wy[i] - uy[i] * wx[i];
-      const float len2 = x * x + y * y + z * z;
-      const float scale = ux[i] * ux[i] + uy[i] * uy[i] + uz[i] * uz[i] + wx[i] * wx[i] + wy[i] * wy[i] + wz[i] * wz[i];
-      // Not finite: len2 >= 0 unless NaN or infinite.
-      const bool ok = len2 > 1e-20f * scale * scale && len2 <= __FLT_MAX__;
-      const float inv = 1.0f / __builtin_sqrtf(len2);
-      const float nan = __builtin_nanf("");
-      nx[i] = ok ? x * inv : nan;
-      ny[i] = ok ? y * inv : nan;
-      nz[i] = ok ? z * inv : nan;
-    }
-    for (int i = 0; i < n; ++i) { o[3 * i] = nx[i]; o[3 * i + 1] = ny[i]; o[3 * i + 2] = nz[i]; }
+    normals_of_edges(ux, uy, uz, wx, wy, wz, n, out + 3 * size_t(b - f0));
   }
 }
 
@@ -244,23 +251,13 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void normals_of_points(const fl
   const float *__restrict ax = pt[0], *__restrict ay = pt[1], *__restrict az = pt[2];
   const float *__restrict qx = pt[3], *__restrict qy = pt[4], *__restrict qz = pt[5];
   const float *__restrict rx = pt[6], *__restrict ry = pt[7], *__restrict rz = pt[8];
-  float nx[PointBlock::kSize], ny[PointBlock::kSize], nz[PointBlock::kSize];
+  float ux[PointBlock::kSize], uy[PointBlock::kSize], uz[PointBlock::kSize];
+  float wx[PointBlock::kSize], wy[PointBlock::kSize], wz[PointBlock::kSize];
   for (int i = 0; i < n; ++i) {
-    const float ux = qx[i] - ax[i], uy = qy[i] - ay[i], uz = qz[i] - az[i];
-    const float wx = rx[i] - ax[i], wy = ry[i] - ay[i], wz = rz[i] - az[i];
-    const float x = uy * wz - uz * wy;
-    const float y = uz * wx - ux * wz;
-    const float z = ux * wy - uy * wx;
-    const float len2 = x * x + y * y + z * z;
-    const float scale = ux * ux + uy * uy + uz * uz + wx * wx + wy * wy + wz * wz;
-    const bool ok = len2 > 1e-20f * scale * scale && len2 <= __FLT_MAX__;
-    const float inv = 1.0f / __builtin_sqrtf(len2);
-    const float nan = __builtin_nanf("");
-    nx[i] = ok ? x * inv : nan;
-    ny[i] = ok ? y * inv : nan;
-    nz[i] = ok ? z * inv : nan;
+    ux[i] = qx[i] - ax[i]; uy[i] = qy[i] - ay[i]; uz[i] = qz[i] - az[i];
+    wx[i] = rx[i] - ax[i]; wy[i] = ry[i] - ay[i]; wz[i] = rz[i] - az[i];
   }
-  for (int i = 0; i < n; ++i) { out[3 * i] = nx[i]; out[3 * i + 1] = ny[i]; out[3 * i + 2] = nz[i]; }
+  normals_of_edges(ux, uy, uz, wx, wy, wz, n, out);
 }
 
 // Triangle quality gathered a block of faces at a time (triangle_quality,
