@@ -565,6 +565,15 @@ TEST(Angles, SummaryTallyFollowsItsDefinition) {
 // computed at the other face's corner, the angles summed in another order)
 // gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
 // chunks did not: its rounding followed the order.)
+// Every field of two angle summaries equal.
+void expect_same_summary(const AngleSummary& a, const AngleSummary& b, const std::string& at) {
+  EXPECT_EQ(a.edges, b.edges) << at;
+  EXPECT_EQ(a.mean, b.mean) << at;
+  EXPECT_EQ(a.max, b.max) << at;
+  EXPECT_EQ(a.above, b.above) << at;
+  EXPECT_EQ(a.histogram, b.histogram) << at;
+}
+
 // The summary asked for the triangle quality as well gathers each face's
 // points once for its normals and the quality: the same summary as without,
 // and triangle_quality's result, on one to three threads; with angles given
@@ -595,11 +604,7 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
       QualitySummary q;
       q.min_angle = q.p1_angle = -1;
       const AngleSummary both = summarize_angles(m, ct, nullptr, 20.0, 0, threads, &q);
-      EXPECT_EQ(both.edges, alone.edges) << at;
-      EXPECT_EQ(both.mean, alone.mean) << at;
-      EXPECT_EQ(both.max, alone.max) << at;
-      EXPECT_EQ(both.above, alone.above) << at;
-      EXPECT_EQ(both.histogram, alone.histogram) << at;
+      expect_same_summary(both, alone, at);
       EXPECT_EQ(q.min_angle, expected.min_angle) << at;
       EXPECT_EQ(q.p1_angle, expected.p1_angle) << at;
       Array<float> theta;
@@ -643,11 +648,7 @@ TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
         const AngleSummary f = summarize_angles(x, xt, nullptr, 20.0, 0, threads);
         const QualitySummary q = triangle_quality(x, threads);
         const std::string at = path + ", " + std::to_string(threads) + " threads" + (reversed ? ", reversed" : "");
-        EXPECT_EQ(e.edges, exact.edges) << at;
-        EXPECT_EQ(e.mean, exact.mean) << at;
-        EXPECT_EQ(e.max, exact.max) << at;
-        EXPECT_EQ(e.above, exact.above) << at;
-        EXPECT_EQ(e.histogram, exact.histogram) << at;
+        expect_same_summary(e, exact, at);
         EXPECT_EQ(f.mean, fast.mean) << at;
         EXPECT_EQ(f.above, fast.above) << at;
         EXPECT_EQ(q.min_angle, quality.min_angle) << at;
