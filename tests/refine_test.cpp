@@ -918,7 +918,9 @@ TEST(Refine, ReportedQualityIsTheOutputs) {
         const std::string at = c.name + ", levels " + std::to_string(v.levels) + ", " + std::to_string(threads) +
                                " threads" + (v.budget ? ", budget" : "") + (v.crease > 0 ? ", creases" : "") +
                                (v.mode == Mode::kIteas ? ", iteas" : "");
-        if (v.budget > 0 && v.mode == Mode::kUniform) EXPECT_EQ(st.stopped_by, "budget") << at;
+        if (v.budget > 0 && v.mode == Mode::kUniform) {
+          EXPECT_EQ(st.stopped_by, "budget") << at;
+        }
         const QualitySummary q = triangle_quality(m, 1);
         EXPECT_EQ(st.quality_after.min_angle, q.min_angle) << at;
         EXPECT_EQ(st.quality_after.p1_angle, q.p1_angle) << at;
