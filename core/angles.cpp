@@ -303,7 +303,7 @@ static QualitySummary quality_summary(const Array<int32_t>& all, float min_angle
   q.min_angle = double(min_angle);
   const int64_t rank = std::max<int64_t>(1, int64_t(std::ceil(0.01 * double(total))));
   int64_t seen = 0;
-  for (int i = 0; i < QualityTally::kBins; ++i) {
+  for (int i = 0; i < int(all.size()); ++i) {
     seen += all[i];
     if (seen >= rank) { q.p1_angle = std::max(q.min_angle, i / 100.0); break; }
   }
@@ -686,7 +686,6 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     std::vector<std::vector<Waiting>> waiting(theta ? 0 : size_t((e - b + kFaces - 1) / kFaces));
     AngleTally tally;
     QualityTally quality_tally(with_quality);
-    PointBlock points;
     auto count = [&](const float* angles, int n) {
       int i = 0;
 #if ITEAS_X86_FEATURES
@@ -716,6 +715,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         continue;
       }
       if (with_quality) {
+        PointBlock points;
         for (int64_t g0 = f0; g0 < f1; g0 += PointBlock::kSize) {
           const int k = int(std::min<int64_t>(PointBlock::kSize, f1 - g0));
           points.gather(mesh, nullptr, g0, k);

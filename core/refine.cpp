@@ -1545,6 +1545,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   std::vector<float> fmax;
   std::vector<int32_t> selected;
   AngleSummary last_after;
+  // A uniform level makes four faces of each: is there room for another?
+  auto no_room = [&] { return int64_t(m.num_faces()) * 4 > o.max_triangles; };
   QualitySummary fused_quality;
   bool quality_done = false;  // fused_quality describes the mesh as it is
   for (int level = 1; level <= o.levels; ++level) {
@@ -1557,7 +1559,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     analyse(s, m, o, !use_uniform_path || crease > 0);
     if (!adaptive) {
       ls.threshold = T_input;
-      if (int64_t(m.num_faces()) * 4 > o.max_triangles) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
+      if (no_room()) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path) {
@@ -1615,14 +1617,13 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       current_angles(s, m);
       note_peak(s, m, 0);
     }
-    // The last uniform level's summary computes each face's normal from its
-    // points: the triangle quality after refinement comes from the same
-    // gathered points (the mesh's positions do not change after it). A level
-    // is the last when the levels asked for are done or the budget leaves no
-    // room for another; a level after it (none runs) would clear the flag.
-    const bool last = level == o.levels || (!adaptive && int64_t(m.num_faces()) * 4 > o.max_triangles) ||
-                      stats.stopped_by == "budget";
-    const bool fuse = statistics && last && !s.theta_current;
+    // A uniform level's summary computes each face's normal from its points
+    // (adaptive levels read the angles they carry): on the last one the
+    // triangle quality after refinement comes from the same gathered points
+    // (the mesh's positions do not change after it). A uniform level is the
+    // last when the levels asked for are done or the budget leaves no room
+    // for another; a level after it (none runs) would clear the flag.
+    const bool fuse = statistics && !s.theta_current && (level == o.levels || no_room());
     const AngleSummary after =
         statistics ? summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, ls.threshold, crease, s.threads,
                                       fuse ? &fused_quality : nullptr)

@@ -559,12 +559,6 @@ TEST(Angles, SummaryTallyFollowsItsDefinition) {
   }
 }
 
-// The statistics gather counts, a maximum and an exact sum, so they do not
-// depend on how the faces are split over threads nor on the order of the
-// faces: the same mesh with its faces in reverse order (every edge is then
-// computed at the other face's corner, the angles summed in another order)
-// gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
-// chunks did not: its rounding followed the order.)
 // Every field of two angle summaries equal.
 void expect_same_summary(const AngleSummary& a, const AngleSummary& b, const std::string& at) {
   EXPECT_EQ(a.edges, b.edges) << at;
@@ -619,6 +613,12 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 8u : 26u);
 }
 
+// The statistics gather counts, a maximum and an exact sum, so they do not
+// depend on how the faces are split over threads nor on the order of the
+// faces: the same mesh with its faces in reverse order (every edge is then
+// computed at the other face's corner, the angles summed in another order)
+// gives the same bits, on 1, 2 and 3 threads. (A sum of doubles gathered in
+// chunks did not: its rounding followed the order.)
 TEST(Angles, SummariesDoNotDependOnThreadsOrFaceOrder) {
   const std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
   for (const test::NamedMesh& c : meshes) {
