@@ -12,6 +12,8 @@
 #include "core/cpu_features.h"
 #include "core/parallel.h"
 
+#define ITEAS_INLINE inline __attribute__((always_inline))
+
 namespace iteas {
 
 bool mark_sharp_edges(const CornerTable& ct, const Array<float>* theta, double crease_angle,
@@ -144,6 +146,116 @@ int64_t ring_offsets(const VertexClass& vclass, const int32_t* vertex_corner, in
 }
 }  // namespace
 
+namespace {
+// What build_rings' copy reads and writes, as raw arrays.
+struct RingCopy {
+  const CornerTable& ct;
+  CornerTable::Recorded fans;
+  const int32_t* cv;
+  const int32_t* valence;
+  const int32_t* fan;
+  const int32_t* vertex_corner;
+  int32_t* offset;
+  int32_t* corner;
+  int32_t* neighbour;
+  int32_t* slot;  // null: no slots
+  // v's recorded fan and its ring in walk order, when it is the closed fan of
+  // k faces the walk would take (the start of the run otherwise).
+  ITEAS_INLINE int32_t recorded_ring(int32_t v, int32_t k) const {
+    if (v >= fans.vertices || fan[v] != k || !fans.next) return -1;
+    const int32_t o = fans.offset[v];
+    return fans.corner[o] == vertex_corner[v] ? o : -1;
+  }
+};
+
+// Vertex v's ring at |off| in the table, walked or read from a fan recorded
+// without its neighbours. True when the slots may be incomplete (see
+// build_rings).
+bool copy_ring_slowly(const RingCopy& r, int32_t v, int32_t k, int32_t off) {
+  const int32_t* order = r.ct.fan_order(v);
+  if (order && r.fan[v] == k) {  // the closed fan of k faces the walk would take
+    for (int32_t j = 0; j < k; ++j) {
+      r.corner[off + j] = order[j];
+      r.neighbour[off + j] = r.cv[next_corner(order[j])];
+      if (r.slot) r.slot[order[j]] = off + j;
+    }
+    return r.ct.recorded_corners(v) != k;
+  }
+  int32_t x = r.ct.vertex_corner(v);
+  for (int32_t j = 0; j < k; ++j) {
+    if (x < 0) { r.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
+    r.corner[off + j] = x;
+    r.neighbour[off + j] = r.cv[next_corner(x)];
+    if (r.slot) r.slot[x] = off + j;
+    x = r.ct.swing_right(x);
+  }
+  return true;  // walked: its other corners unknown
+}
+
+#if ITEAS_X86_FEATURES
+// A recorded ring of k <= 16 entries copied in masked registers.
+__attribute__((target("avx512f"))) inline void copy_ring_avx512(const RingCopy& r, const int32_t* order,
+                                                                const int32_t* next, int32_t k, int32_t off) {
+  const __mmask16 mask = _cvtu32_mask16((1u << k) - 1);
+  const __m512i corners = _mm512_maskz_loadu_epi32(mask, order);
+  _mm512_mask_storeu_epi32(r.corner + off, mask, corners);
+  _mm512_mask_storeu_epi32(r.neighbour + off, mask, _mm512_maskz_loadu_epi32(mask, next));
+  if (r.slot)
+    for (int32_t j = 0; j < k; ++j) r.slot[order[j]] = off + j;
+}
+#endif
+
+// The rings of vertices [b, e): true when the slots may be incomplete. A ring
+// whose fan was recorded with its neighbours is copied from it (with
+// |kWide|, rings of up to 16 in masked AVX-512 registers).
+template <bool kWide>
+ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
+  bool partial = false;
+  for (int64_t v = b; v < e; ++v) {
+    const int32_t off = r.offset[v];
+    if (off < 0) continue;
+    const int32_t k = r.valence[v];
+    const int32_t o = r.recorded_ring(int32_t(v), k);
+    if (o < 0) {
+      partial |= copy_ring_slowly(r, int32_t(v), k, off);
+      continue;
+    }
+    partial |= r.fans.offset[v + 1] - o != k;
+    const int32_t* order = r.fans.corner + o;
+    const int32_t* next = r.fans.next + o;
+#if ITEAS_X86_FEATURES
+    if constexpr (kWide) {
+      if (k <= 16) {
+        copy_ring_avx512(r, order, next, k, off);
+        continue;
+      }
+    }
+#endif
+    for (int32_t j = 0; j < k; ++j) {
+      r.corner[off + j] = order[j];
+      r.neighbour[off + j] = next[j];
+      if (r.slot) r.slot[order[j]] = off + j;
+    }
+  }
+  return partial;
+}
+
+#if ITEAS_X86_FEATURES
+__attribute__((target("avx512f"))) bool copy_ring_range_avx512(const RingCopy& r, int64_t b, int64_t e) {
+  return copy_ring_range<true>(r, b, e);
+}
+#endif
+
+bool copy_rings(const RingCopy& r, int64_t b, int64_t e, bool wide) {
+#if ITEAS_X86_FEATURES
+  if (wide && cpu_has(CpuFeature::kAvx512)) return copy_ring_range_avx512(r, b, e);
+#else
+  (void)wide;
+#endif
+  return copy_ring_range<false>(r, b, e);
+}
+}  // namespace
+
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads, bool wide, bool slots) {
   const int32_t* cv = mesh.corner_vertex.data();
@@ -182,31 +294,18 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   // without all its vertex's corners (a walked ring may also be dropped,
   // its corners' slots written already): then no slots.
   std::atomic<bool> partial{false};
+  const RingCopy copy{ct,
+                      ct.recorded(),
+                      cv,
+                      vclass.valence.data(),
+                      ct.fans().data(),
+                      ct.vertex_corners().data(),
+                      out.offset.data(),
+                      out.corner.data(),
+                      out.neighbour.data(),
+                      slot};
   parallel_for(limit, threads, [&](int64_t b, int64_t e) {
-    for (int64_t v = b; v < e; ++v) {
-      const int32_t off = out.offset[v];
-      if (off < 0) continue;
-      const int32_t k = vclass.valence[v];
-      const int32_t* order = ct.fan_order(int32_t(v));
-      if (order && ct.fans()[v] == k) {  // the closed fan of k faces the walk would take
-        if (ct.recorded_corners(int32_t(v)) != k) partial.store(true, std::memory_order_relaxed);
-        for (int32_t j = 0; j < k; ++j) {
-          out.corner[off + j] = order[j];
-          out.neighbour[off + j] = cv[next_corner(order[j])];
-          if (slot) slot[order[j]] = off + j;
-        }
-        continue;
-      }
-      partial.store(true, std::memory_order_relaxed);  // walked: its other corners unknown
-      int32_t x = ct.vertex_corner(int32_t(v));
-      for (int32_t j = 0; j < k; ++j) {
-        if (x < 0) { out.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
-        out.corner[off + j] = x;
-        out.neighbour[off + j] = cv[next_corner(x)];
-        if (slot) slot[x] = off + j;
-        x = ct.swing_right(x);
-      }
-    }
+    if (copy_rings(copy, b, e, wide)) partial.store(true, std::memory_order_relaxed);
   }, 512);
   if (partial.load()) {
     out.complete = false;
@@ -244,8 +343,6 @@ void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, 
     vclass.complete[v] = VertexClass::flags(vclass.complete[v] != 0, vclass.valence[v]);
   }
 }
-
-#define ITEAS_INLINE inline __attribute__((always_inline))
 
 namespace {
 

@@ -125,13 +125,17 @@ inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t
 // exit to mispredict), counting those before it returns to |first|; order
 // entries past the cycle are written too, never read (a fan order is read
 // only as far as the fan's recorded size).
-__attribute__((always_inline)) inline void walk_fan(const int32_t* corners, const int32_t* right, int n,
-                                                    int32_t* order, int32_t& first, int32_t& faces) {
+__attribute__((always_inline)) inline void walk_fan(const int32_t* corners, const int32_t* nexts,
+                                                    const int32_t* right, int n, int32_t* order, int32_t* order_next,
+                                                    int32_t& first, int32_t& faces) {
   first = right[0];
   int32_t x = first, count = 0;
   bool back = false;
   for (int step = 0; step < n; ++step) {
-    if (order) order[step] = corners[x];
+    if (order) {
+      order[step] = corners[x];
+      order_next[step] = nexts[x];
+    }
     x = right[x];
     count += !back;
     back |= x == first;
@@ -147,8 +151,8 @@ __attribute__((always_inline)) inline void walk_fan(const int32_t* corners, cons
 // permutation (two entries matching the same one would share their next
 // vertex), and walk_fan follows it.
 template <int N>
-inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order, int32_t& first,
-                           int32_t& faces) {
+inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order,
+                           int32_t* order_next, int32_t& first, int32_t& faces) {
   const int32_t* corners = vc.corners.data() + rb;
   const int32_t* nexts = vc.nexts.data() + rb;
   const int32_t* prevs = vc.prevs.data() + rb;
@@ -167,7 +171,7 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   // every entry being matched (two entries with the same next b would match
   // the same entry, leaving another unmatched).
   if (bad | (matched ^ ((1u << N) - 1))) return false;
-  walk_fan(corners, right, N, order ? order + rb : nullptr, first, faces);
+  walk_fan(corners, nexts, right, N, order ? order + rb : nullptr, order ? order_next + rb : nullptr, first, faces);
   return true;
 }
 
@@ -192,7 +196,8 @@ constexpr Rotations kRot;
 // accepts (every entry matched once each way) and writes the same
 // opposites, fan order and fan size.
 __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorners& vc, int32_t rb, int n,
-                                                                  int32_t* opposite, int32_t* order, int32_t& first,
+                                                                  int32_t* opposite, int32_t* order,
+                                                                  int32_t* order_next, int32_t& first,
                                                                   int32_t& faces) {
   const int32_t* corners = vc.corners.data() + rb;
   const __m256i P = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.prevs.data() + rb));
@@ -246,7 +251,10 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
   __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
   at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
   at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
-  if (order) _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
+  if (order) {
+    _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
+    _mm256_maskstore_epi32(order_next + rb, valid, _mm256_permutevar8x32_epi32(X, at));
+  }
   // The cycle's length: the first step s >= 1 back at right[0], else n.
   const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
   faces = back ? int32_t(__builtin_ctz(back)) : n;
@@ -274,23 +282,24 @@ struct Cuts {
 };
 template <bool kAvx2>
 __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite,
-                                                     int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                     int32_t* order, int32_t* order_next, uint8_t* cut_kind,
+                                                     Cuts* cuts, bool split,
                                                      int32_t& vertex_corner, int32_t& fan, RunScratch& scratch) {
   const int32_t n = re - rb;
   int32_t first = 0, faces = 0;
   bool manifold = false;
   if constexpr (kAvx2) {
 #if ITEAS_AVX2_MATCH
-    if (n >= 3 && n <= 8) manifold = match_manifold_avx2(vc, rb, n, opposite, order, first, faces);
+    if (n >= 3 && n <= 8) manifold = match_manifold_avx2(vc, rb, n, opposite, order, order_next, first, faces);
 #endif
   } else {
     switch (n) {
-      case 3: manifold = match_manifold<3>(vc, rb, opposite, order, first, faces); break;
-      case 4: manifold = match_manifold<4>(vc, rb, opposite, order, first, faces); break;
-      case 5: manifold = match_manifold<5>(vc, rb, opposite, order, first, faces); break;
-      case 6: manifold = match_manifold<6>(vc, rb, opposite, order, first, faces); break;
-      case 7: manifold = match_manifold<7>(vc, rb, opposite, order, first, faces); break;
-      case 8: manifold = match_manifold<8>(vc, rb, opposite, order, first, faces); break;
+      case 3: manifold = match_manifold<3>(vc, rb, opposite, order, order_next, first, faces); break;
+      case 4: manifold = match_manifold<4>(vc, rb, opposite, order, order_next, first, faces); break;
+      case 5: manifold = match_manifold<5>(vc, rb, opposite, order, order_next, first, faces); break;
+      case 6: manifold = match_manifold<6>(vc, rb, opposite, order, order_next, first, faces); break;
+      case 7: manifold = match_manifold<7>(vc, rb, opposite, order, order_next, first, faces); break;
+      case 8: manifold = match_manifold<8>(vc, rb, opposite, order, order_next, first, faces); break;
       default: break;
     }
   }
@@ -331,7 +340,10 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
     for (int32_t x = left[0]; x >= 0 && x != 0; x = left[x]) first = x;
   bool closed = false;
   for (int32_t x = first;;) {
-    if (order && faces < n) order[rb + faces] = vc.corners[rb + x];
+    if (order && faces < n) {
+      order[rb + faces] = vc.corners[rb + x];
+      order_next[rb + faces] = vc.nexts[rb + x];
+    }
     ++faces;
     const int32_t s = right[x];
     if (s < 0) break;
@@ -351,7 +363,7 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
 template <bool kAvx2>
 __attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, int64_t begin, int64_t end,
                                                        const int32_t* vertex_of, int32_t* opposite, int32_t* order,
-                                                       uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                       int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
                                                        int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
   RunScratch scratch;
   bool found = false;
@@ -359,7 +371,8 @@ __attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, 
     const int32_t rb = vc.offset[r], re = vc.offset[r + 1];
     if (re == rb) continue;
     const int64_t a = vertex_of ? vertex_of[r] : r;
-    if (!match_run<kAvx2>(vc, rb, re, opposite, order, cut_kind, cuts, split, vertex_corner[a], fan[a], scratch)) {
+    if (!match_run<kAvx2>(vc, rb, re, opposite, order, order_next, cut_kind, cuts, split, vertex_corner[a], fan[a],
+                          scratch)) {
       several[a] = 1;
       found = true;
     }
@@ -370,27 +383,27 @@ __attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, 
 #if ITEAS_AVX2_MATCH
 __attribute__((target("avx2"))) bool match_range_avx2(const VertexCorners& vc, int64_t begin, int64_t end,
                                                        const int32_t* vertex_of, int32_t* opposite, int32_t* order,
-                                                       uint8_t* cut_kind, Cuts* cuts, bool split,
+                                                       int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
                                                        int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
-  return match_range<true>(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
-                           several);
+  return match_range<true>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                           vertex_corner, fan, several);
 }
 #endif
 
 // match_range with the compares of runs of 3-8 in AVX2 registers where
 // |wide| and the processor has AVX2 (the same table either way).
 bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, const int32_t* vertex_of,
-                int32_t* opposite, int32_t* order, uint8_t* cut_kind, Cuts* cuts, bool split, int32_t* vertex_corner,
-                int32_t* fan, uint8_t* several) {
+                int32_t* opposite, int32_t* order, int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
+                int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
 #if ITEAS_AVX2_MATCH
   if (wide && cpu_has(CpuFeature::kAvx2))
-    return match_range_avx2(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
-                            several);
+    return match_range_avx2(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                            vertex_corner, fan, several);
 #else
   (void)wide;
 #endif
-  return match_range<false>(vc, begin, end, vertex_of, opposite, order, cut_kind, cuts, split, vertex_corner, fan,
-                            several);
+  return match_range<false>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                            vertex_corner, fan, several);
 }
 
 }  // namespace
@@ -431,17 +444,20 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   fan_.assign(nv, 0);
   std::vector<int32_t>().swap(fan_offset_);
   Array<int32_t>().swap(fan_corner_);
+  Array<int32_t>().swap(fan_next_);
   if (record_order) {
     fan_offset_ = vc.offset;
     fan_corner_.resize(nc);
+    fan_next_.resize(nc);
   }
   int32_t* order = record_order ? fan_corner_.data() : nullptr;
+  int32_t* order_next = record_order ? fan_next_.data() : nullptr;
   std::atomic<int64_t> cut_corners{0};
   std::atomic<bool> odd_cuts{false}, any_several{false};
   parallel_for(nv, threads, [&](int64_t begin, int64_t end) {
     Cuts cuts;
-    const bool found = match_runs(wide, vc, begin, end, nullptr, opposite_.data(), order, cut_kind.data(), &cuts,
-                                  split_vertices, vertex_corner_.data(), fan_.data(), several.data());
+    const bool found = match_runs(wide, vc, begin, end, nullptr, opposite_.data(), order, order_next, cut_kind.data(),
+                                  &cuts, split_vertices, vertex_corner_.data(), fan_.data(), several.data());
     if (found) any_several.store(true, std::memory_order_relaxed);
     if (cuts.corners) cut_corners.fetch_add(cuts.corners, std::memory_order_relaxed);
     if (cuts.not_boundary) odd_cuts.store(true, std::memory_order_relaxed);
@@ -519,6 +535,9 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
       }
     }
   }
+  // A split vertex renumbered the corners of its other fans: the next
+  // vertices recorded before then may be stale.
+  if (report.split_vertices) Array<int32_t>().swap(fan_next_);
   return report;
 }
 
@@ -659,7 +678,7 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   VertexCorners vc;
   vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {
-    match_runs(true, vc, begin, end, vertex_of.data(), opposite.data(), nullptr, nullptr, nullptr, false,
+    match_runs(true, vc, begin, end, vertex_of.data(), opposite.data(), nullptr, nullptr, nullptr, nullptr, false,
                vertex_corner.data(), fan.data(), nullptr);
   }, kVertexGrain);
   opposite_.swap(opposite);
@@ -667,6 +686,7 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   fan_.swap(fan);
   std::vector<int32_t>().swap(fan_offset_);
   Array<int32_t>().swap(fan_corner_);
+  Array<int32_t>().swap(fan_next_);
   return true;
 }
 

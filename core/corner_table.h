@@ -124,16 +124,36 @@ class CornerTable {
     const int32_t* order = fan_corner_.data() + fan_offset_[v];
     return order[0] == vertex_corner_[v] ? order : nullptr;
   }
+  // With fan_order(v): the vertex after each of those corners in its face
+  // (the ring of v in walk order); null when not recorded or when vertices
+  // were split.
+  const int32_t* fan_neighbours(int32_t v) const {
+    return fan_next_.empty() ? nullptr : fan_next_.data() + fan_offset_[v];
+  }
   // With |record_order|: the number of corners vertex v had when the table
   // was built (its run, before any vertex was split off it); -1 when not
   // recorded. Equal to |fans()[v]| when v's recorded fan holds all of them.
   int32_t recorded_corners(int32_t v) const {
     return size_t(v) + 1 < fan_offset_.size() ? fan_offset_[v + 1] - fan_offset_[v] : -1;
   }
+  // The recorded fans as arrays, for loops over many vertices: per vertex
+  // below |vertices| (0 when not recorded), |offset[v]| to |offset[v + 1]|
+  // in |corner| and |next| (next null when fan_neighbours() is).
+  struct Recorded {
+    const int32_t* offset;
+    const int32_t* corner;
+    const int32_t* next;
+    int32_t vertices;
+  };
+  Recorded recorded() const {
+    return {fan_offset_.data(), fan_corner_.data(), fan_next_.empty() ? nullptr : fan_next_.data(),
+            fan_offset_.empty() ? 0 : int32_t(fan_offset_.size() - 1)};
+  }
   void forget_fans() {
     std::vector<int32_t>().swap(fan_);
     std::vector<int32_t>().swap(fan_offset_);
     Array<int32_t>().swap(fan_corner_);
+    Array<int32_t>().swap(fan_next_);
   }
 
   Array<int32_t>& opposites() { return opposite_; }
@@ -147,6 +167,7 @@ class CornerTable {
   std::vector<int32_t> fan_;
   std::vector<int32_t> fan_offset_;  // record_order: per vertex + 1, into fan_corner_
   Array<int32_t> fan_corner_;        // record_order: the fans' corners in walk order
+  Array<int32_t> fan_next_;          // record_order: the vertex after each of those in its face
 };
 
 }  // namespace iteas
