@@ -177,7 +177,7 @@ bool copy_ring_slowly(const RingCopy& r, int32_t v, int32_t k, int32_t off) {
     for (int32_t j = 0; j < k; ++j) {
       r.corner[off + j] = order[j];
       r.neighbour[off + j] = r.cv[next_corner(order[j])];
-      if (r.slot) r.slot[order[j]] = off + j;
+      if (r.slot) r.slot[prev_corner(order[j])] = off + j;
     }
     return r.ct.recorded_corners(v) != k;
   }
@@ -186,28 +186,27 @@ bool copy_ring_slowly(const RingCopy& r, int32_t v, int32_t k, int32_t off) {
     if (x < 0) { r.offset[v] = -1; break; }  // defensive: not a closed fan of k faces
     r.corner[off + j] = x;
     r.neighbour[off + j] = r.cv[next_corner(x)];
-    if (r.slot) r.slot[x] = off + j;
+    if (r.slot) r.slot[prev_corner(x)] = off + j;
     x = r.ct.swing_right(x);
   }
   return true;  // walked: its other corners unknown
 }
 
 #if ITEAS_X86_FEATURES
-// A recorded ring of k <= 16 entries copied in masked registers.
-__attribute__((target("avx512f"))) inline void copy_ring_avx512(const RingCopy& r, const int32_t* order,
-                                                                const int32_t* next, int32_t k, int32_t off) {
-  const __mmask16 mask = _cvtu32_mask16((1u << k) - 1);
-  const __m512i corners = _mm512_maskz_loadu_epi32(mask, order);
-  _mm512_mask_storeu_epi32(r.corner + off, mask, corners);
-  _mm512_mask_storeu_epi32(r.neighbour + off, mask, _mm512_maskz_loadu_epi32(mask, next));
+// A recorded ring of k <= 8 entries copied in masked AVX2 registers.
+__attribute__((target("avx2"))) inline void copy_ring_avx2(const RingCopy& r, const int32_t* order,
+                                                           const int32_t* next, int32_t k, int32_t off) {
+  const __m256i mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(k), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+  _mm256_maskstore_epi32(r.corner + off, mask, _mm256_maskload_epi32(order, mask));
+  _mm256_maskstore_epi32(r.neighbour + off, mask, _mm256_maskload_epi32(next, mask));
   if (r.slot)
-    for (int32_t j = 0; j < k; ++j) r.slot[order[j]] = off + j;
+    for (int32_t j = 0; j < k; ++j) r.slot[prev_corner(order[j])] = off + j;
 }
 #endif
 
 // The rings of vertices [b, e): true when the slots may be incomplete. A ring
 // whose fan was recorded with its neighbours is copied from it (with
-// |kWide|, rings of up to 16 in masked AVX-512 registers).
+// |kWide|, rings of up to 8 in masked AVX2 registers).
 template <bool kWide>
 ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
   bool partial = false;
@@ -225,8 +224,8 @@ ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
     const int32_t* next = r.fans.next + o;
 #if ITEAS_X86_FEATURES
     if constexpr (kWide) {
-      if (k <= 16) {
-        copy_ring_avx512(r, order, next, k, off);
+      if (k <= 8) {
+        copy_ring_avx2(r, order, next, k, off);
         continue;
       }
     }
@@ -234,21 +233,21 @@ ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
     for (int32_t j = 0; j < k; ++j) {
       r.corner[off + j] = order[j];
       r.neighbour[off + j] = next[j];
-      if (r.slot) r.slot[order[j]] = off + j;
+      if (r.slot) r.slot[prev_corner(order[j])] = off + j;
     }
   }
   return partial;
 }
 
 #if ITEAS_X86_FEATURES
-__attribute__((target("avx512f"))) bool copy_ring_range_avx512(const RingCopy& r, int64_t b, int64_t e) {
+__attribute__((target("avx2"))) bool copy_ring_range_avx2(const RingCopy& r, int64_t b, int64_t e) {
   return copy_ring_range<true>(r, b, e);
 }
 #endif
 
 bool copy_rings(const RingCopy& r, int64_t b, int64_t e, bool wide) {
 #if ITEAS_X86_FEATURES
-  if (wide && cpu_has(CpuFeature::kAvx512)) return copy_ring_range_avx512(r, b, e);
+  if (wide && cpu_has(CpuFeature::kAvx2)) return copy_ring_range_avx2(r, b, e);
 #else
   (void)wide;
 #endif
@@ -267,7 +266,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
       for (int64_t i = b; i < e; ++i) {
         const int32_t x = out.corner[i];
         out.neighbour[i] = x >= 0 ? cv[next_corner(x)] : -1;
-        if (slot && x >= 0) slot[x] = int32_t(i);
+        if (slot && x >= 0) slot[prev_corner(x)] = int32_t(i);
       }
     });
     ring_points(mesh, vclass, out, threads, wide);
@@ -1023,7 +1022,7 @@ ITEAS_INLINE void slotted_points(const View<false>& view, const int32_t* corners
     int nr = 0, no = 0;
     for (int j = 0; j < n; ++j) {
       const int32_t c = block[j], d = opp[c];
-      const int32_t s1 = slot[next_corner(c)], s2 = slot[next_corner(d < 0 ? c : d)];
+      const int32_t s1 = slot[c], s2 = slot[d < 0 ? c : d];
       // 1 when the edge is interior and one of its ends has a slot.
       const int32_t ring = int32_t(uint32_t(~(d | (s1 & s2))) >> 31);
       // a: s1 if it is a slot, else s2; b: s2 when both are slots, else -1.

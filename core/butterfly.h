@@ -53,9 +53,12 @@ struct RingTable {
   bool complete = false;
   // Per corner of the level, where the rings cover an eighth of the corners
   // or more (the first uniform levels of a typical mesh) and |complete|:
-  // the ring entry whose point is the extraordinary rule of the corner's
-  // vertex for the edge to its next vertex, -1 where the vertex has no
-  // ring. Empty otherwise (the rules then look the corner up in its ring).
+  // the ring entry whose point is the extraordinary rule, for the edge
+  // opposite the corner, of that edge's first vertex (the vertex after the
+  // corner, towards the vertex before it), -1 where that vertex has no ring.
+  // The edge of corner c thus finds its two ends' entries at c and at its
+  // opposite, without dividing by 3. Empty otherwise (the rules then look
+  // the corner up in its ring).
   Array<int32_t> slot;
   static bool dense(int64_t entries, int64_t corners) { return 8 * entries >= corners; }
   // |slot| sized for |corners| and all -1 when |wanted|, |complete| and the

@@ -260,6 +260,88 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
   faces = back ? int32_t(__builtin_ctz(back)) : n;
   return true;
 }
+
+// Lanes 0-7 of row r: 2r, lanes 8-15: 2r + 1 (entry 2r's and 2r + 1's
+// previous vertex across a register of the run's next vertices twice over).
+struct PairRows {
+  alignas(64) int32_t r[4][16];
+  constexpr PairRows() : r() {
+    for (int k = 0; k < 4; ++k)
+      for (int i = 0; i < 16; ++i) r[k][i] = 2 * k + (i >> 3);
+  }
+};
+constexpr PairRows kPairRows;
+
+// match_manifold_avx2 with the whole n x n comparison at once: four compares
+// of sixteen lanes give the matrix whose byte j holds the entries i whose
+// next vertex is entry j's previous one. Every entry is matched once each way
+// when each of the n rows holds one bit and the rows cover the n columns;
+// right[j] is then the one bit of row j (its exponent as a float). The same
+// runs accepted, the same opposites, fan order and fan size.
+__attribute__((target("avx512f,avx2"))) inline bool match_manifold_avx512(const VertexCorners& vc, int32_t rb, int n,
+                                                                          int32_t* opposite, int32_t* order,
+                                                                          int32_t* order_next, int32_t& first,
+                                                                          int32_t& faces) {
+  const int32_t* corners = vc.corners.data() + rb;
+  const __m256i P = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.prevs.data() + rb));
+  const __m256i X = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.nexts.data() + rb));
+  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(corners));
+  const __m512i XX = _mm512_broadcast_i64x4(X), PP = _mm512_castsi256_si512(P);
+  uint64_t matrix = 0;
+  for (int k = 0; k < 4; ++k) {
+    const __m512i rows = _mm512_load_si512(kPairRows.r[k]);
+    const __mmask16 eq = _mm512_cmpeq_epi32_mask(XX, _mm512_permutexvar_epi32(rows, PP));
+    matrix |= uint64_t(_cvtmask16_u32(eq)) << (16 * k);
+  }
+  const unsigned keep = (1u << n) - 1;
+  // Rows and columns from n on belong to other runs.
+  matrix &= (n == 8 ? ~uint64_t(0) : (uint64_t(1) << (8 * n)) - 1) & (0x0101010101010101ull * keep);
+  uint64_t columns = matrix | matrix >> 32;
+  columns |= columns >> 16;
+  columns |= columns >> 8;
+  const __m256i row = _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(int64_t(matrix)));
+  const __m256i zero = _mm256_setzero_si256();
+  const __m256i one_bit = _mm256_andnot_si256(
+      _mm256_cmpeq_epi32(row, zero),
+      _mm256_cmpeq_epi32(_mm256_and_si256(row, _mm256_sub_epi32(row, _mm256_set1_epi32(1))), zero));
+  if ((unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(one_bit))) & keep) != keep || (columns & 0xff) != keep)
+    return false;
+  const __m256i right = _mm256_sub_epi32(_mm256_srli_epi32(_mm256_castps_si256(_mm256_cvtepi32_ps(row)), 23),
+                                         _mm256_set1_epi32(127));
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256i valid = _mm256_cmpgt_epi32(_mm256_set1_epi32(n), lane);
+  // Next and previous corners as match_manifold_avx2 has them; entry j's
+  // corner's next is the opposite of the corner before entry right[j]'s.
+  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
+  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(C, magic), 33);
+  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(C, 32), magic), 33);
+  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
+  const __m256i r3 = _mm256_sub_epi32(C, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
+  const __m256i three = _mm256_set1_epi32(3), one = _mm256_set1_epi32(1);
+  const __m256i next = _mm256_add_epi32(_mm256_add_epi32(C, one),
+                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_set1_epi32(2)),
+                                                         _mm256_set1_epi32(-3)));
+  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
+                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, zero), three));
+  alignas(32) int32_t before[8], after[8];
+  _mm256_store_si256(reinterpret_cast<__m256i*>(before), _mm256_permutevar8x32_epi32(prev, right));
+  _mm256_store_si256(reinterpret_cast<__m256i*>(after), next);
+  for (int j = 0; j < n; ++j) opposite[before[j]] = after[j];
+  first = _mm256_cvtsi256_si32(right);
+  const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
+  const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
+  const __m256i start = _mm256_set1_epi32(first);
+  __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
+  if (order) {
+    _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
+    _mm256_maskstore_epi32(order_next + rb, valid, _mm256_permutevar8x32_epi32(X, at));
+  }
+  const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
+  faces = back ? int32_t(__builtin_ctz(back)) : n;
+  return true;
+}
 #endif
 
 // Runs longer than this are matched in a buffer from the heap.
@@ -280,7 +362,8 @@ struct Cuts {
   int64_t corners = 0;
   bool not_boundary = false;
 };
-template <bool kAvx2>
+// kWidth: 0 SSE2, 1 AVX2, 2 AVX-512 (runs of 3-8 in registers).
+template <int kWidth>
 __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, int32_t rb, int32_t re, int32_t* opposite,
                                                      int32_t* order, int32_t* order_next, uint8_t* cut_kind,
                                                      Cuts* cuts, bool split,
@@ -288,7 +371,11 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
   const int32_t n = re - rb;
   int32_t first = 0, faces = 0;
   bool manifold = false;
-  if constexpr (kAvx2) {
+  if constexpr (kWidth == 2) {
+#if ITEAS_AVX2_MATCH
+    if (n >= 3 && n <= 8) manifold = match_manifold_avx512(vc, rb, n, opposite, order, order_next, first, faces);
+#endif
+  } else if constexpr (kWidth == 1) {
 #if ITEAS_AVX2_MATCH
     if (n >= 3 && n <= 8) manifold = match_manifold_avx2(vc, rb, n, opposite, order, order_next, first, faces);
 #endif
@@ -360,7 +447,7 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
 // The matching of runs [begin, end), run r being vertex r's (or, with
 // |vertex_of|, vertex vertex_of[r]'s); true when some vertex has several
 // fans (recorded in |several| when |split|).
-template <bool kAvx2>
+template <int kWidth>
 __attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, int64_t begin, int64_t end,
                                                        const int32_t* vertex_of, int32_t* opposite, int32_t* order,
                                                        int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
@@ -371,7 +458,7 @@ __attribute__((always_inline)) inline bool match_range(const VertexCorners& vc, 
     const int32_t rb = vc.offset[r], re = vc.offset[r + 1];
     if (re == rb) continue;
     const int64_t a = vertex_of ? vertex_of[r] : r;
-    if (!match_run<kAvx2>(vc, rb, re, opposite, order, order_next, cut_kind, cuts, split, vertex_corner[a], fan[a],
+    if (!match_run<kWidth>(vc, rb, re, opposite, order, order_next, cut_kind, cuts, split, vertex_corner[a], fan[a],
                           scratch)) {
       several[a] = 1;
       found = true;
@@ -385,8 +472,17 @@ __attribute__((target("avx2"))) bool match_range_avx2(const VertexCorners& vc, i
                                                        const int32_t* vertex_of, int32_t* opposite, int32_t* order,
                                                        int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
                                                        int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
-  return match_range<true>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
-                           vertex_corner, fan, several);
+  return match_range<1>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                        vertex_corner, fan, several);
+}
+
+__attribute__((target("avx512f,avx2"))) bool match_range_avx512(const VertexCorners& vc, int64_t begin, int64_t end,
+                                                                const int32_t* vertex_of, int32_t* opposite,
+                                                                int32_t* order, int32_t* order_next, uint8_t* cut_kind,
+                                                                Cuts* cuts, bool split, int32_t* vertex_corner,
+                                                                int32_t* fan, uint8_t* several) {
+  return match_range<2>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                        vertex_corner, fan, several);
 }
 #endif
 
@@ -396,14 +492,17 @@ bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, 
                 int32_t* opposite, int32_t* order, int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
                 int32_t* vertex_corner, int32_t* fan, uint8_t* several) {
 #if ITEAS_AVX2_MATCH
+  if (wide && cpu_has(CpuFeature::kAvx512))
+    return match_range_avx512(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                              vertex_corner, fan, several);
   if (wide && cpu_has(CpuFeature::kAvx2))
     return match_range_avx2(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
                             vertex_corner, fan, several);
 #else
   (void)wide;
 #endif
-  return match_range<false>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
-                            vertex_corner, fan, several);
+  return match_range<0>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
+                        vertex_corner, fan, several);
 }
 
 }  // namespace

@@ -3,11 +3,19 @@
 // same results).
 #pragma once
 
+#include <atomic>
+
 namespace iteas {
 
 #if defined(__GNUC__) && defined(__x86_64__)
 #define ITEAS_X86_FEATURES 1
 enum class CpuFeature { kAvx, kAvx2, kAvx512 };
+// For tests: the widest feature cpu_has() may answer yes for, so that the
+// routines for narrower registers run on a processor with wider ones.
+inline std::atomic<int>& cpu_feature_cap() {
+  static std::atomic<int> cap{int(CpuFeature::kAvx512)};
+  return cap;
+}
 // Asked once, on first use (__builtin_cpu_init: safe even before the libgcc
 // constructor that would set the answers up has run).
 inline bool cpu_has(CpuFeature f) {
@@ -19,6 +27,7 @@ inline bool cpu_has(CpuFeature f) {
     return Answers{__builtin_cpu_supports("avx") != 0, __builtin_cpu_supports("avx2") != 0,
                    __builtin_cpu_supports("avx512f") != 0};
   }();
+  if (int(f) > cpu_feature_cap().load(std::memory_order_relaxed)) return false;
   return f == CpuFeature::kAvx ? yes.avx : (f == CpuFeature::kAvx2 ? yes.avx2 : yes.avx512);
 }
 #else

@@ -154,13 +154,16 @@ TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 2u : 10u);  // tests/data alone: bunny-npm and knot
 }
 
-// Runs of 3-8 corners are matched in AVX2 registers where the processor has
+// Runs of 3-8 corners are matched in AVX-512 registers where the processor
+// has AVX-512 (the whole comparison at once), in AVX2 registers where it has
 // AVX2 (a rotation of the run per compare) and with SSE2 otherwise: the same
-// opposites, corners, fans, fan orders and reports either way, on every mesh
-// (the nasty fixtures below run both ways too).
-TEST(CornerTable, TheSameTableWithAndWithoutAvx2) {
+// opposites, corners, fans, fan orders, fan neighbours and reports every way,
+// on every mesh (the nasty fixtures below run both ways too).
+TEST(CornerTable, TheSameTableWithAvx512Avx2AndSse2) {
 #if ITEAS_X86_FEATURES
-  if (!cpu_has(CpuFeature::kAvx2)) GTEST_SKIP() << "no AVX2: both builds would take SSE2";
+  if (!cpu_has(CpuFeature::kAvx2)) GTEST_SKIP() << "no AVX2: every build would take SSE2";
+  std::vector<CpuFeature> caps = {CpuFeature::kAvx2};
+  if (cpu_has(CpuFeature::kAvx512)) caps.push_back(CpuFeature::kAvx512);
 #else
   GTEST_SKIP() << "not x86-64: SSE2 only";
 #endif
@@ -168,11 +171,20 @@ TEST(CornerTable, TheSameTableWithAndWithoutAvx2) {
   for (const test::NamedMesh& c : meshes) {
     SCOPED_TRACE(c.name);
     for (bool split : {true, false}) {
-      Mesh narrow_mesh = c.mesh, wide_mesh = c.mesh;
-      CornerTable narrow, wide;
+      Mesh narrow_mesh = c.mesh;
+      CornerTable narrow;
       const TopologyReport rn = narrow.build(narrow_mesh, split, 2, true, false);
-      const TopologyReport rw = wide.build(wide_mesh, split, 2, true, true);
-      ASSERT_NO_FATAL_FAILURE(expect_same_table(wide_mesh, wide, rw, narrow_mesh, narrow, rn));
+#if ITEAS_X86_FEATURES
+      for (CpuFeature cap : caps) {
+        SCOPED_TRACE(cap == CpuFeature::kAvx2 ? "AVX2" : "AVX-512");
+        cpu_feature_cap() = int(cap);
+        Mesh wide_mesh = c.mesh;
+        CornerTable wide;
+        const TopologyReport rw = wide.build(wide_mesh, split, 2, true, true);
+        cpu_feature_cap() = int(CpuFeature::kAvx512);
+        ASSERT_NO_FATAL_FAILURE(expect_same_table(wide_mesh, wide, rw, narrow_mesh, narrow, rn));
+      }
+#endif
     }
   }
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 5u : 40u);
