@@ -175,6 +175,32 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   return true;
 }
 
+// match_manifold for runs of 9-16 corners (vertices of high valence: about
+// one in forty of a typical mesh's, which the generic pass below matched in
+// a quarter of the matching's time), n known at run time: two compares of
+// eight per entry. Reads 16 entries of each array (n >= 9 and kPad after
+// the last run keep that inside them).
+inline bool match_manifold_16(const VertexCorners& vc, int32_t rb, int n, int32_t* opposite, int32_t* order,
+                              int32_t* order_next, int32_t& first, int32_t& faces) {
+  const int32_t* corners = vc.corners.data() + rb;
+  const int32_t* nexts = vc.nexts.data() + rb;
+  const int32_t* prevs = vc.prevs.data() + rb;
+  int32_t right[16];
+  unsigned bad = 0, matched = 0;
+  for (int i = 0; i < n; ++i) {
+    const int32_t b = nexts[i];
+    const unsigned r = equal_mask8(prevs, b, 8) | equal_mask8(prevs + 8, b, n - 8) << 8;
+    bad |= (r & (r - 1)) | unsigned(r == 0);
+    const int m = __builtin_ctz(r | 0x8000u);  // 15 when r == 0 (then bad)
+    matched |= 1u << m;
+    opposite[prev_corner(corners[i])] = next_corner(corners[m]);
+    right[m] = i;
+  }
+  if (bad | (matched ^ ((1u << n) - 1))) return false;
+  walk_fan(corners, nexts, right, n, order ? order + rb : nullptr, order ? order_next + rb : nullptr, first, faces);
+  return true;
+}
+
 #if ITEAS_AVX2_MATCH
 // Rotations within a run of n (3..8) entries: lane i of kRot.r[n][k] is
 // (i + k) mod n (lanes from n on: themselves, never read).
@@ -390,6 +416,7 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
       default: break;
     }
   }
+  if (n > 8 && n <= 16) manifold = match_manifold_16(vc, rb, n, opposite, order, order_next, first, faces);
   if (manifold) {  // closed fans, as the generic walk below would find
     if (split && faces != n) return false;
     vertex_corner = vc.corners[rb + first];
