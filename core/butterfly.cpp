@@ -202,12 +202,36 @@ __attribute__((target("avx2"))) inline void copy_ring_avx2(const RingCopy& r, co
   if (r.slot)
     for (int32_t j = 0; j < k; ++j) r.slot[prev_corner(order[j])] = off + j;
 }
+
+// copy_ring_avx2 with the slots scattered under a mask (a loop of k stores
+// mispredicted its exit, k varying from vertex to vertex).
+__attribute__((target("avx512f,avx512vl,avx2"))) inline void copy_ring_avx512(const RingCopy& r, const int32_t* order,
+                                                                             const int32_t* next, int32_t k,
+                                                                             int32_t off) {
+  const __mmask8 mask = __mmask8((1u << k) - 1);
+  const __m256i corners = _mm256_maskz_loadu_epi32(mask, order);
+  _mm256_mask_storeu_epi32(r.corner + off, mask, corners);
+  _mm256_mask_storeu_epi32(r.neighbour + off, mask, _mm256_maskz_loadu_epi32(mask, next));
+  if (!r.slot) return;
+  // The corners before the ring's, without division by 3 (c mod 3 from the
+  // high half of c * 0xAAAAAAAB).
+  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
+  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(corners, magic), 33);
+  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(corners, 32), magic), 33);
+  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
+  const __m256i r3 = _mm256_sub_epi32(corners, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
+  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(corners, _mm256_set1_epi32(1)),
+                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()),
+                                                         _mm256_set1_epi32(3)));
+  const __m256i at = _mm256_add_epi32(_mm256_set1_epi32(off), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+  _mm256_mask_i32scatter_epi32(r.slot, mask, prev, at, 4);
+}
 #endif
 
 // The rings of vertices [b, e): true when the slots may be incomplete. A ring
 // whose fan was recorded with its neighbours is copied from it (with
-// |kWide|, rings of up to 8 in masked AVX2 registers).
-template <bool kWide>
+// kWidth 1 or 2, rings of up to 8 in masked AVX2 or AVX-512 registers).
+template <int kWidth>
 ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
   bool partial = false;
   for (int64_t v = b; v < e; ++v) {
@@ -223,9 +247,10 @@ ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
     const int32_t* order = r.fans.corner + o;
     const int32_t* next = r.fans.next + o;
 #if ITEAS_X86_FEATURES
-    if constexpr (kWide) {
+    if constexpr (kWidth > 0) {
       if (k <= 8) {
-        copy_ring_avx2(r, order, next, k, off);
+        if constexpr (kWidth == 2) copy_ring_avx512(r, order, next, k, off);
+        else copy_ring_avx2(r, order, next, k, off);
         continue;
       }
     }
@@ -241,17 +266,22 @@ ITEAS_INLINE bool copy_ring_range(const RingCopy& r, int64_t b, int64_t e) {
 
 #if ITEAS_X86_FEATURES
 __attribute__((target("avx2"))) bool copy_ring_range_avx2(const RingCopy& r, int64_t b, int64_t e) {
-  return copy_ring_range<true>(r, b, e);
+  return copy_ring_range<1>(r, b, e);
+}
+
+__attribute__((target("avx512f,avx512vl,avx2"))) bool copy_ring_range_avx512(const RingCopy& r, int64_t b, int64_t e) {
+  return copy_ring_range<2>(r, b, e);
 }
 #endif
 
 bool copy_rings(const RingCopy& r, int64_t b, int64_t e, bool wide) {
 #if ITEAS_X86_FEATURES
+  if (wide && cpu_has(CpuFeature::kAvx512)) return copy_ring_range_avx512(r, b, e);
   if (wide && cpu_has(CpuFeature::kAvx2)) return copy_ring_range_avx2(r, b, e);
 #else
   (void)wide;
 #endif
-  return copy_ring_range<false>(r, b, e);
+  return copy_ring_range<0>(r, b, e);
 }
 }  // namespace
 

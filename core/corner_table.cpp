@@ -304,7 +304,7 @@ constexpr PairRows kPairRows;
 // when each of the n rows holds one bit and the rows cover the n columns;
 // right[j] is then the one bit of row j (its exponent as a float). The same
 // runs accepted, the same opposites, fan order and fan size.
-__attribute__((target("avx512f,avx2"))) inline bool match_manifold_avx512(const VertexCorners& vc, int32_t rb, int n,
+__attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx512(const VertexCorners& vc, int32_t rb, int n,
                                                                           int32_t* opposite, int32_t* order,
                                                                           int32_t* order_next, int32_t& first,
                                                                           int32_t& faces) {
@@ -349,10 +349,9 @@ __attribute__((target("avx512f,avx2"))) inline bool match_manifold_avx512(const 
                                                          _mm256_set1_epi32(-3)));
   const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
                                         _mm256_and_si256(_mm256_cmpeq_epi32(r3, zero), three));
-  alignas(32) int32_t before[8], after[8];
-  _mm256_store_si256(reinterpret_cast<__m256i*>(before), _mm256_permutevar8x32_epi32(prev, right));
-  _mm256_store_si256(reinterpret_cast<__m256i*>(after), next);
-  for (int j = 0; j < n; ++j) opposite[before[j]] = after[j];
+  // Scattered under a mask (a loop of n stores mispredicted its exit, n
+  // varying from vertex to vertex).
+  _mm256_mask_i32scatter_epi32(opposite, __mmask8(keep), _mm256_permutevar8x32_epi32(prev, right), next, 4);
   first = _mm256_cvtsi256_si32(right);
   const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
   const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
@@ -503,7 +502,7 @@ __attribute__((target("avx2"))) bool match_range_avx2(const VertexCorners& vc, i
                         vertex_corner, fan, several);
 }
 
-__attribute__((target("avx512f,avx2"))) bool match_range_avx512(const VertexCorners& vc, int64_t begin, int64_t end,
+__attribute__((target("avx512f,avx512vl,avx2"))) bool match_range_avx512(const VertexCorners& vc, int64_t begin, int64_t end,
                                                                 const int32_t* vertex_of, int32_t* opposite,
                                                                 int32_t* order, int32_t* order_next, uint8_t* cut_kind,
                                                                 Cuts* cuts, bool split, int32_t* vertex_corner,

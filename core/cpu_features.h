@@ -24,8 +24,10 @@ inline bool cpu_has(CpuFeature f) {
   };
   static const Answers yes = [] {
     __builtin_cpu_init();
+    // kAvx512: the foundation and the 128/256-bit forms (every AVX-512
+    // processor but the Xeon Phi's).
     return Answers{__builtin_cpu_supports("avx") != 0, __builtin_cpu_supports("avx2") != 0,
-                   __builtin_cpu_supports("avx512f") != 0};
+                   __builtin_cpu_supports("avx512f") != 0 && __builtin_cpu_supports("avx512vl") != 0};
   }();
   if (int(f) > cpu_feature_cap().load(std::memory_order_relaxed)) return false;
   return f == CpuFeature::kAvx ? yes.avx : (f == CpuFeature::kAvx2 ? yes.avx2 : yes.avx512);

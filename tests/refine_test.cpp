@@ -13,6 +13,7 @@
 #include "core/angles.h"
 #include "core/butterfly.h"
 #include "core/corner_table.h"
+#include "core/cpu_features.h"
 #include "core/refine.h"
 #include "tests/support.h"
 
@@ -394,13 +395,26 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
     for (int32_t off : rings.offset) ringed += off >= 0;
     // The rule points summed with AVX (where the processor has it) and
     // with SSE2 alone: the same bits; the rings' offsets (AVX-512) the same.
+    // The same with the AVX2 routines alone (the recorded rings copied in
+    // AVX2 registers rather than AVX-512 ones).
     build_rings(m, l.ct, ctx.vclass, m.num_vertices(), narrow, 2, /*wide=*/false);
-    EXPECT_EQ(rings.offset, narrow.offset) << name;
-    EXPECT_EQ(rings.complete, narrow.complete) << name;
-    ASSERT_EQ(rings.corner.size(), narrow.corner.size()) << name;
-    EXPECT_TRUE(std::equal(rings.corner.begin(), rings.corner.end(), narrow.corner.begin())) << name;
-    ASSERT_EQ(rings.point.size(), narrow.point.size());
-    EXPECT_EQ(std::memcmp(rings.point.data(), narrow.point.data(), rings.point.size() * sizeof(float)), 0) << name;
+#if ITEAS_X86_FEATURES
+    RingTable avx2;
+    cpu_feature_cap() = int(CpuFeature::kAvx2);
+    build_rings(m, l.ct, ctx.vclass, m.num_vertices(), avx2, 2);
+    cpu_feature_cap() = int(CpuFeature::kAvx512);
+    for (const RingTable* other : {&narrow, &avx2}) {
+#else
+    for (const RingTable* other : {&narrow}) {
+#endif
+      EXPECT_EQ(rings.offset, other->offset) << name;
+      EXPECT_EQ(rings.complete, other->complete) << name;
+      EXPECT_TRUE(rings.corner == other->corner) << name;
+      EXPECT_TRUE(rings.neighbour == other->neighbour) << name;
+      EXPECT_TRUE(rings.slot == other->slot) << name;
+      ASSERT_EQ(rings.point.size(), other->point.size());
+      EXPECT_EQ(std::memcmp(rings.point.data(), other->point.data(), rings.point.size() * sizeof(float)), 0) << name;
+    }
     std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), walked.data());
     std::vector<std::vector<StencilTerm>> walked_terms(corners.size());
@@ -751,8 +765,9 @@ TEST(Refine, StatisticsOffGivesTheSameMesh) {
   EXPECT_GE(n, 20);
 }
 
-// The routines for wider registers (AVX sums, AVX2 edge matching, AVX-512
-// canonical corners, ring offsets, children and their opposites) against the
+// The routines for wider registers (AVX sums, AVX2 and AVX-512 edge matching
+// and ring copies, AVX-512 canonical corners, ring offsets, children and
+// their opposites; also with AVX2 at most) against the
 // baseline ones: the same mesh, bit for bit, in both modes, on one and two
 // threads. Meshes without attributes or groups take every wide routine of a
 // uniform level.
@@ -771,6 +786,16 @@ TEST(Refine, WideRoutinesGiveTheSameMesh) {
         h.wide = false;
         refine_mesh(narrow, opts(mode, levels, threads), h, &st_narrow);
         EXPECT_TRUE(same_mesh(wide, narrow)) << c.name << " " << mode_name(mode) << " " << threads;
+#if ITEAS_X86_FEATURES
+        // AVX2 at most (the AVX2 matching and ring copy on an AVX-512 processor).
+        Mesh avx2 = c.mesh;
+        RefineStats st_avx2;
+        h.wide = true;
+        cpu_feature_cap() = int(CpuFeature::kAvx2);
+        refine_mesh(avx2, opts(mode, levels, threads), h, &st_avx2);
+        cpu_feature_cap() = int(CpuFeature::kAvx512);
+        EXPECT_TRUE(same_mesh(avx2, narrow)) << c.name << " " << mode_name(mode) << " " << threads << " AVX2";
+#endif
         ++n;
       }
     }
