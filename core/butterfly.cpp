@@ -213,16 +213,8 @@ __attribute__((target("avx512f,avx512vl,avx2"))) inline void copy_ring_avx512(co
   _mm256_mask_storeu_epi32(r.corner + off, mask, corners);
   _mm256_mask_storeu_epi32(r.neighbour + off, mask, _mm256_maskz_loadu_epi32(mask, next));
   if (!r.slot) return;
-  // The corners before the ring's, without division by 3 (c mod 3 from the
-  // high half of c * 0xAAAAAAAB).
-  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
-  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(corners, magic), 33);
-  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(corners, 32), magic), 33);
-  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
-  const __m256i r3 = _mm256_sub_epi32(corners, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
-  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(corners, _mm256_set1_epi32(1)),
-                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()),
-                                                         _mm256_set1_epi32(3)));
+  __m256i next_corners, prev;  // the slots go at the corners before the ring's
+  next_prev_corners_avx2(corners, next_corners, prev);
   const __m256i at = _mm256_add_epi32(_mm256_set1_epi32(off), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
   _mm256_mask_i32scatter_epi32(r.slot, mask, prev, at, 4);
 }
@@ -269,7 +261,8 @@ __attribute__((target("avx2"))) bool copy_ring_range_avx2(const RingCopy& r, int
   return copy_ring_range<1>(r, b, e);
 }
 
-__attribute__((target("avx512f,avx512vl,avx2"))) bool copy_ring_range_avx512(const RingCopy& r, int64_t b, int64_t e) {
+__attribute__((target("avx512f,avx512vl,avx2"))) bool copy_ring_range_avx512(const RingCopy& r, int64_t b,
+                                                                             int64_t e) {
   return copy_ring_range<2>(r, b, e);
 }
 #endif

@@ -150,19 +150,25 @@ __attribute__((always_inline)) inline void walk_fan(const int32_t* corners, cons
 // pass then rewrites this run's opposites. Otherwise |right| is a
 // permutation (two entries matching the same one would share their next
 // vertex), and walk_fan follows it.
-template <int N>
-inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order,
-                           int32_t* order_next, int32_t& first, int32_t& faces) {
+// kMax 8: n <= 8 (in match_manifold, n a constant after inlining); kMax 16:
+// 9 <= n <= 16, read as two compares of eight per entry (16 entries of each
+// array: n >= 9 and kPad after the last run keep that inside them).
+template <int kMax>
+__attribute__((always_inline)) inline bool match_manifold_n(const VertexCorners& vc, int32_t rb, int n,
+                                                            int32_t* opposite, int32_t* order, int32_t* order_next,
+                                                            int32_t& first, int32_t& faces) {
+  static_assert(kMax == 8 || kMax == 16, "runs of up to 8 or 9-16");
   const int32_t* corners = vc.corners.data() + rb;
   const int32_t* nexts = vc.nexts.data() + rb;
   const int32_t* prevs = vc.prevs.data() + rb;
-  int32_t right[8];
+  int32_t right[kMax];
   unsigned bad = 0, matched = 0;
-  for (int i = 0; i < N; ++i) {
+  for (int i = 0; i < n; ++i) {
     const int32_t b = nexts[i];
-    const unsigned r = equal_mask8(prevs, b, N);
+    const unsigned r = kMax == 8 ? equal_mask8(prevs, b, n)
+                                 : equal_mask8(prevs, b, 8) | equal_mask8(prevs + 8, b, n - 8) << 8;
     bad |= (r & (r - 1)) | unsigned(r == 0);
-    const int m = __builtin_ctz(r | 0x80u);  // 7 when r == 0 (then bad)
+    const int m = __builtin_ctz(r | 1u << (kMax - 1));  // the last when r == 0 (then bad)
     matched |= 1u << m;
     opposite[prev_corner(corners[i])] = next_corner(corners[m]);
     right[m] = i;
@@ -170,35 +176,23 @@ inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposit
   // Each b -> a matched once; each a -> b occurring once is then the same as
   // every entry being matched (two entries with the same next b would match
   // the same entry, leaving another unmatched).
-  if (bad | (matched ^ ((1u << N) - 1))) return false;
-  walk_fan(corners, nexts, right, N, order ? order + rb : nullptr, order ? order_next + rb : nullptr, first, faces);
+  if (bad | (matched ^ ((1u << n) - 1))) return false;
+  walk_fan(corners, nexts, right, n, order ? order + rb : nullptr, order ? order_next + rb : nullptr, first, faces);
   return true;
+}
+
+template <int N>
+inline bool match_manifold(const VertexCorners& vc, int32_t rb, int32_t* opposite, int32_t* order,
+                           int32_t* order_next, int32_t& first, int32_t& faces) {
+  return match_manifold_n<8>(vc, rb, N, opposite, order, order_next, first, faces);
 }
 
 // match_manifold for runs of 9-16 corners (vertices of high valence: about
 // one in forty of a typical mesh's, which the generic pass below matched in
-// a quarter of the matching's time), n known at run time: two compares of
-// eight per entry. Reads 16 entries of each array (n >= 9 and kPad after
-// the last run keep that inside them).
+// a quarter of the matching's time), n known at run time.
 inline bool match_manifold_16(const VertexCorners& vc, int32_t rb, int n, int32_t* opposite, int32_t* order,
                               int32_t* order_next, int32_t& first, int32_t& faces) {
-  const int32_t* corners = vc.corners.data() + rb;
-  const int32_t* nexts = vc.nexts.data() + rb;
-  const int32_t* prevs = vc.prevs.data() + rb;
-  int32_t right[16];
-  unsigned bad = 0, matched = 0;
-  for (int i = 0; i < n; ++i) {
-    const int32_t b = nexts[i];
-    const unsigned r = equal_mask8(prevs, b, 8) | equal_mask8(prevs + 8, b, n - 8) << 8;
-    bad |= (r & (r - 1)) | unsigned(r == 0);
-    const int m = __builtin_ctz(r | 0x8000u);  // 15 when r == 0 (then bad)
-    matched |= 1u << m;
-    opposite[prev_corner(corners[i])] = next_corner(corners[m]);
-    right[m] = i;
-  }
-  if (bad | (matched ^ ((1u << n) - 1))) return false;
-  walk_fan(corners, nexts, right, n, order ? order + rb : nullptr, order ? order_next + rb : nullptr, first, faces);
-  return true;
+  return match_manifold_n<16>(vc, rb, n, opposite, order, order_next, first, faces);
 }
 
 #if ITEAS_AVX2_MATCH
@@ -213,6 +207,33 @@ struct Rotations {
   }
 };
 constexpr Rotations kRot;
+
+// walk_fan for the register matchers: |right| (lane j: the entry turning
+// right from entry j) a permutation of the n valid lanes. The walk by
+// doubling: lane s of |at| is the entry s steps from right[0] (steps of 1, 2
+// and 4 where s has those bits), without the chain of n loads, each waiting
+// on the one before. Writes the fan's corners and next vertices (|C|, |X|
+// in walk order) where |order| is not null.
+__attribute__((target("avx2"), always_inline)) inline void walk_fan_avx2(const __m256i& right, const __m256i& C,
+                                                                          const __m256i& X, const __m256i& valid,
+                                                                          unsigned keep, int n, int32_t* order,
+                                                                          int32_t* order_next, int32_t& first,
+                                                                          int32_t& faces) {
+  first = _mm256_cvtsi256_si32(right);
+  const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
+  const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
+  const __m256i start = _mm256_set1_epi32(first);
+  __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
+  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
+  if (order) {
+    _mm256_maskstore_epi32(order, valid, _mm256_permutevar8x32_epi32(C, at));
+    _mm256_maskstore_epi32(order_next, valid, _mm256_permutevar8x32_epi32(X, at));
+  }
+  // The cycle's length: the first step s >= 1 back at right[0], else n.
+  const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
+  faces = back ? int32_t(__builtin_ctz(back)) : n;
+}
 
 // match_manifold for a run of n (3..8) entries in registers of eight lanes:
 // every entry's next vertex against the previous vertex of the entry k
@@ -248,42 +269,17 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
   const __m256i once = _mm256_and_si256(_mm256_cmpeq_epi32(hits, minus_one), _mm256_cmpeq_epi32(hits_j, minus_one));
   const unsigned keep = (1u << n) - 1;
   if ((unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(once))) & keep) != keep) return false;
-  // m = (i + offset) mod n; next and previous corners without division by 3
-  // in the loop (c mod 3 from the high half of c * 0xAAAAAAAB).
+  // m = (i + offset) mod n.
   __m256i m = _mm256_add_epi32(lane, offset);
   m = _mm256_sub_epi32(m, _mm256_and_si256(_mm256_cmpgt_epi32(m, _mm256_set1_epi32(n - 1)), _mm256_set1_epi32(n)));
-  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
-  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(C, magic), 33);
-  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(C, 32), magic), 33);
-  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
-  const __m256i r3 = _mm256_sub_epi32(C, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
-  const __m256i three = _mm256_set1_epi32(3), one = _mm256_set1_epi32(1);
-  const __m256i next = _mm256_add_epi32(_mm256_add_epi32(C, one),
-                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_set1_epi32(2)),
-                                                         _mm256_set1_epi32(-3)));
-  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
-                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()), three));
+  __m256i next, prev;
+  next_prev_corners_avx2(C, next, prev);
   alignas(32) int32_t before[8], after[8];
   _mm256_store_si256(reinterpret_cast<__m256i*>(before), prev);
   _mm256_store_si256(reinterpret_cast<__m256i*>(after), _mm256_permutevar8x32_epi32(next, m));
   for (int i = 0; i < n; ++i) opposite[before[i]] = after[i];
-  // walk_fan's walk by doubling: lane s of |at| is the entry s steps from
-  // right[0] (steps of 1, 2 and 4 where s has those bits), without the
-  // chain of n loads, each waiting on the one before.
-  first = _mm256_cvtsi256_si32(right);
-  const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
-  const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
-  const __m256i start = _mm256_set1_epi32(first);
-  __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
-  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
-  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
-  if (order) {
-    _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
-    _mm256_maskstore_epi32(order_next + rb, valid, _mm256_permutevar8x32_epi32(X, at));
-  }
-  // The cycle's length: the first step s >= 1 back at right[0], else n.
-  const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
-  faces = back ? int32_t(__builtin_ctz(back)) : n;
+  walk_fan_avx2(right, C, X, valid, keep, n, order ? order + rb : nullptr, order ? order_next + rb : nullptr,
+                first, faces);
   return true;
 }
 
@@ -304,19 +300,20 @@ constexpr PairRows kPairRows;
 // when each of the n rows holds one bit and the rows cover the n columns;
 // right[j] is then the one bit of row j (its exponent as a float). The same
 // runs accepted, the same opposites, fan order and fan size.
-__attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx512(const VertexCorners& vc, int32_t rb, int n,
-                                                                          int32_t* opposite, int32_t* order,
-                                                                          int32_t* order_next, int32_t& first,
-                                                                          int32_t& faces) {
+__attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx512(
+    const VertexCorners& vc, int32_t rb, int n, int32_t* opposite, int32_t* order, int32_t* order_next,
+    int32_t& first, int32_t& faces) {
   const int32_t* corners = vc.corners.data() + rb;
-  const __m256i P = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.prevs.data() + rb));
   const __m256i X = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.nexts.data() + rb));
   const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(corners));
-  const __m512i XX = _mm512_broadcast_i64x4(X), PP = _mm512_castsi256_si512(P);
+  // The zero-masked forms: the plain ones start from an undefined register,
+  // which GCC 12 reports as maybe uninitialised.
+  const __m512i XX = _mm512_maskz_broadcast_i64x4(0xFF, X);
+  const __m512i PP = _mm512_maskz_loadu_epi32(0xFF, vc.prevs.data() + rb);
   uint64_t matrix = 0;
   for (int k = 0; k < 4; ++k) {
     const __m512i rows = _mm512_load_si512(kPairRows.r[k]);
-    const __mmask16 eq = _mm512_cmpeq_epi32_mask(XX, _mm512_permutexvar_epi32(rows, PP));
+    const __mmask16 eq = _mm512_cmpeq_epi32_mask(XX, _mm512_maskz_permutexvar_epi32(0xFFFF, rows, PP));
     matrix |= uint64_t(_cvtmask16_u32(eq)) << (16 * k);
   }
   const unsigned keep = (1u << n) - 1;
@@ -336,35 +333,14 @@ __attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx5
                                          _mm256_set1_epi32(127));
   const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256i valid = _mm256_cmpgt_epi32(_mm256_set1_epi32(n), lane);
-  // Next and previous corners as match_manifold_avx2 has them; entry j's
-  // corner's next is the opposite of the corner before entry right[j]'s.
-  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
-  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(C, magic), 33);
-  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(C, 32), magic), 33);
-  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
-  const __m256i r3 = _mm256_sub_epi32(C, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
-  const __m256i three = _mm256_set1_epi32(3), one = _mm256_set1_epi32(1);
-  const __m256i next = _mm256_add_epi32(_mm256_add_epi32(C, one),
-                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_set1_epi32(2)),
-                                                         _mm256_set1_epi32(-3)));
-  const __m256i prev = _mm256_add_epi32(_mm256_sub_epi32(C, one),
-                                        _mm256_and_si256(_mm256_cmpeq_epi32(r3, zero), three));
-  // Scattered under a mask (a loop of n stores mispredicted its exit, n
-  // varying from vertex to vertex).
+  // Entry j's corner's next is the opposite of the corner before entry
+  // right[j]'s; scattered under a mask (a loop of n stores mispredicted its
+  // exit, n varying from vertex to vertex).
+  __m256i next, prev;
+  next_prev_corners_avx2(C, next, prev);
   _mm256_mask_i32scatter_epi32(opposite, __mmask8(keep), _mm256_permutevar8x32_epi32(prev, right), next, 4);
-  first = _mm256_cvtsi256_si32(right);
-  const __m256i right2 = _mm256_permutevar8x32_epi32(right, right);
-  const __m256i right4 = _mm256_permutevar8x32_epi32(right2, right2);
-  const __m256i start = _mm256_set1_epi32(first);
-  __m256i at = _mm256_blend_epi32(start, _mm256_permutevar8x32_epi32(right, start), 0xAA);
-  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right2, at), 0xCC);
-  at = _mm256_blend_epi32(at, _mm256_permutevar8x32_epi32(right4, at), 0xF0);
-  if (order) {
-    _mm256_maskstore_epi32(order + rb, valid, _mm256_permutevar8x32_epi32(C, at));
-    _mm256_maskstore_epi32(order_next + rb, valid, _mm256_permutevar8x32_epi32(X, at));
-  }
-  const unsigned back = unsigned(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(at, start)))) & keep & ~1u;
-  faces = back ? int32_t(__builtin_ctz(back)) : n;
+  walk_fan_avx2(right, C, X, valid, keep, n, order ? order + rb : nullptr, order ? order_next + rb : nullptr,
+                first, faces);
   return true;
 }
 #endif
@@ -502,18 +478,17 @@ __attribute__((target("avx2"))) bool match_range_avx2(const VertexCorners& vc, i
                         vertex_corner, fan, several);
 }
 
-__attribute__((target("avx512f,avx512vl,avx2"))) bool match_range_avx512(const VertexCorners& vc, int64_t begin, int64_t end,
-                                                                const int32_t* vertex_of, int32_t* opposite,
-                                                                int32_t* order, int32_t* order_next, uint8_t* cut_kind,
-                                                                Cuts* cuts, bool split, int32_t* vertex_corner,
-                                                                int32_t* fan, uint8_t* several) {
+__attribute__((target("avx512f,avx512vl,avx2"))) bool match_range_avx512(
+    const VertexCorners& vc, int64_t begin, int64_t end, const int32_t* vertex_of, int32_t* opposite, int32_t* order,
+    int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split, int32_t* vertex_corner, int32_t* fan,
+    uint8_t* several) {
   return match_range<2>(vc, begin, end, vertex_of, opposite, order, order_next, cut_kind, cuts, split,
                         vertex_corner, fan, several);
 }
 #endif
 
-// match_range with the compares of runs of 3-8 in AVX2 registers where
-// |wide| and the processor has AVX2 (the same table either way).
+// match_range with the compares of runs of 3-8 in AVX-512 or AVX2 registers
+// where |wide| and the processor has them (the same table every way).
 bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, const int32_t* vertex_of,
                 int32_t* opposite, int32_t* order, int32_t* order_next, uint8_t* cut_kind, Cuts* cuts, bool split,
                 int32_t* vertex_corner, int32_t* fan, uint8_t* several) {

@@ -10,7 +10,9 @@
 #include <cstdint>
 #include <vector>
 
-#if defined(__SSE2__)
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#elif defined(__SSE2__)
 #include <emmintrin.h>
 #endif
 
@@ -29,6 +31,24 @@ inline int32_t prev_corner(int32_t c) {
   const uint32_t r = uint32_t(c) % 3u;
   return c - 1 + 3 * int32_t((r - 1u) >> 31);  // r == 0: on to the face's last corner
 }
+
+#if defined(__GNUC__) && defined(__x86_64__)
+// next_corner and prev_corner of eight corners in an AVX2 register, without
+// division by 3 (c mod 3 from the high half of c * 0xAAAAAAAB; c >= 0).
+__attribute__((target("avx2"), always_inline)) inline void next_prev_corners_avx2(const __m256i& c, __m256i& next,
+                                                                                   __m256i& prev) {
+  const __m256i magic = _mm256_set1_epi32(int32_t(0xAAAAAAABu));
+  const __m256i q_even = _mm256_srli_epi64(_mm256_mul_epu32(c, magic), 33);
+  const __m256i q_odd = _mm256_srli_epi64(_mm256_mul_epu32(_mm256_srli_epi64(c, 32), magic), 33);
+  const __m256i q = _mm256_blend_epi32(q_even, _mm256_slli_epi64(q_odd, 32), 0xAA);
+  const __m256i r3 = _mm256_sub_epi32(c, _mm256_add_epi32(q, _mm256_add_epi32(q, q)));
+  const __m256i one = _mm256_set1_epi32(1);
+  next = _mm256_add_epi32(_mm256_add_epi32(c, one),
+                          _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_set1_epi32(2)), _mm256_set1_epi32(-3)));
+  prev = _mm256_add_epi32(_mm256_sub_epi32(c, one),
+                          _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()), _mm256_set1_epi32(3)));
+}
+#endif
 
 // Uniform 1:4 split, children of face f numbered 4f+j (child j < 3 keeps the
 // parent's corner j, child 3 is the centre): where parent corner c, at a kept
