@@ -6,6 +6,7 @@
 #include <cstring>
 
 #include "core/corner_table.h"
+#include "core/cpu_features.h"
 #include "core/refine.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
@@ -25,17 +26,35 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   iteas::drop_degenerate_faces(m);
   if (m.num_faces() == 0) return 0;
   {
-    // Oracle: the corner table's matching in AVX2 registers (where the
-    // processor has AVX2) and with SSE2 alone give the same table.
-    iteas::Mesh a = m, b = m;
-    iteas::CornerTable narrow, wide;
+    // Oracle: the corner table's matching in AVX-512 registers, in AVX2
+    // registers (where the processor has them) and with SSE2 alone give the
+    // same table, fan orders and fan neighbours included.
+    iteas::Mesh a = m;
+    iteas::CornerTable narrow;
     const iteas::TopologyReport ra = narrow.build(a, true, 1, true, false);
-    const iteas::TopologyReport rb = wide.build(b, true, 1, true, true);
-    bool same = a.corner_vertex == b.corner_vertex && narrow.opposites() == wide.opposites() &&
-                narrow.fans() == wide.fans() && ra.boundary_edges == rb.boundary_edges &&
-                ra.non_manifold_edges == rb.non_manifold_edges && ra.split_vertices == rb.split_vertices;
-    for (int32_t v = 0; same && v < a.num_vertices(); ++v) same = narrow.vertex_corner(v) == wide.vertex_corner(v);
-    if (!same) __builtin_trap();
+    auto check = [&](bool wide) {
+      iteas::Mesh b = m;
+      iteas::CornerTable t;
+      const iteas::TopologyReport rb = t.build(b, true, 1, true, wide);
+      bool same = a.corner_vertex == b.corner_vertex && narrow.opposites() == t.opposites() &&
+                  narrow.fans() == t.fans() && ra.boundary_edges == rb.boundary_edges &&
+                  ra.non_manifold_edges == rb.non_manifold_edges && ra.split_vertices == rb.split_vertices;
+      for (int32_t v = 0; same && v < a.num_vertices(); ++v) {
+        same = narrow.vertex_corner(v) == t.vertex_corner(v);
+        const int32_t *oa = narrow.fan_order(v), *ob = t.fan_order(v);
+        const int32_t *na = narrow.fan_neighbours(v), *nb = t.fan_neighbours(v);
+        same = same && (oa == nullptr) == (ob == nullptr) && (na == nullptr) == (nb == nullptr);
+        const int32_t n = oa ? (narrow.fans()[v] < 0 ? -narrow.fans()[v] : narrow.fans()[v]) : 0;
+        for (int32_t j = 0; same && j < n; ++j) same = oa[j] == ob[j] && (!na || na[j] == nb[j]);
+      }
+      if (!same) __builtin_trap();
+    };
+    check(true);
+#if ITEAS_X86_FEATURES
+    iteas::cpu_feature_cap() = int(iteas::CpuFeature::kAvx2);
+    check(true);
+    iteas::cpu_feature_cap() = int(iteas::CpuFeature::kAvx512);
+#endif
   }
   iteas::RefineOptions o;
   o.mode = mode == 0 ? iteas::Mode::kIteas : (mode == 1 ? iteas::Mode::kUniform : iteas::Mode::kFixed);
