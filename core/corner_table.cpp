@@ -20,6 +20,8 @@ namespace {
 // Loops over vertices walk a fan each (several corners): smaller pieces than
 // the per-corner loops still pay for a thread.
 constexpr int64_t kVertexGrain = 512;
+// Chunks of a compaction in two passes (parallel_count_fill).
+constexpr int64_t kCompactChunk = 4096;
 
 // Corners grouped by vertex in two passes (count, prefix sum, fill), as
 // meshoptimizer builds adjacency. Next to each corner, the vertices before
@@ -703,13 +705,21 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   if (int32_t(kept_from.size()) != nf || int32_t(touched.size()) != nv || nv < old_nv ||
       int32_t(fan_.size()) != old_nv)
     return false;
-  // Where each kept face went.
-  std::vector<int32_t> moved(old_nf, -1);
-  for (int32_t f = 0; f < nf; ++f)
-    if (kept_from[f] >= 0) {
-      if (kept_from[f] >= old_nf) return false;
-      moved[kept_from[f]] = f;
+  // Where each kept face went (each old face is kept once at most).
+  Array<int32_t> moved(old_nf);
+  std::atomic<bool> consistent{true};
+  parallel_for(old_nf, threads, [&](int64_t b, int64_t e) { std::fill(moved.begin() + b, moved.begin() + e, -1); });
+  parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+    bool ok = true;
+    for (int64_t f = b; f < e; ++f) {
+      const int32_t from = kept_from[f];
+      if (from < 0) continue;
+      if (from >= old_nf) { ok = false; continue; }
+      moved[from] = int32_t(f);
     }
+    if (!ok) consistent.store(false, std::memory_order_relaxed);
+  });
+  if (!consistent.load()) return false;
   auto remap = [&](int32_t c) { return c < 0 ? -1 : 3 * moved[c / 3] + c % 3; };
   // An untouched vertex's faces are all kept, so its run is the one it had,
   // renumbered in the same order: the opposites of the corners before its
@@ -718,8 +728,7 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   // Per face, which of its corners' vertices are touched (bit k: corner k),
   // the face's three flags read once for both uses.
   Array<int32_t> opposite(nc);
-  std::vector<uint8_t> touched_corners(nf);
-  std::atomic<bool> consistent{true};
+  Array<uint8_t> touched_corners(nf);
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     const int32_t* fv = cv.data();
     const uint8_t* tv = touched.data();
@@ -743,38 +752,67 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
     if (!ok) consistent.store(false, std::memory_order_relaxed);
   });
   if (!consistent.load()) return false;
-  std::vector<int32_t> vertex_corner(nv, -1), fan(nv, 0), id(nv, -1), vertex_of;  // id: run of a touched vertex
-  for (int32_t v = 0; v < nv; ++v) {
-    if (touched[v]) {
-      id[v] = int32_t(vertex_of.size());
-      vertex_of.push_back(v);
-      continue;
-    }
-    if (v >= old_nv) return false;  // new vertices are touched
-    vertex_corner[v] = remap(vertex_corner_[v]);
-    fan[v] = fan_[v];
-  }
-  const int32_t runs = int32_t(vertex_of.size());
-  // The touched vertices matched as build() matches every vertex.
-  // Counted first, then listed without branches (on a level that changed
-  // much, whether a corner is touched follows no pattern).
-  int64_t touched_count = 0;
-  for (int32_t f = 0; f < nf; ++f) touched_count += kBits[touched_corners[f]];
-  std::vector<int32_t> at(size_t(touched_count) + 3);  // 3 spare: each face writes all three
-  {
-    int32_t* list = at.data();
-    const uint8_t* mask = touched_corners.data();
-    int64_t n = 0;
-    for (int32_t f = 0; f < nf; ++f) {
-      const unsigned m = mask[f];
-      if (m == 0) continue;  // after the first levels nearly every face
-      for (int k = 0; k < 3; ++k) {
-        list[n] = 3 * f + k;
-        n += m >> k & 1;
-      }
-    }
-  }
-  at.resize(size_t(touched_count));
+  // Untouched vertices keep their corner (renumbered) and fan; touched ones
+  // are numbered in vertex order (id: their run) for the matching below.
+  std::vector<int32_t> vertex_corner(nv), fan(nv), id(nv), vertex_of;
+  const uint8_t* tv = touched.data();
+  const int32_t runs = int32_t(parallel_count_fill(
+      nv, threads, kCompactChunk,
+      [tv](int64_t b, int64_t e) {
+        int64_t n = 0;
+        for (int64_t v = b; v < e; ++v) n += tv[v] != 0;
+        return n;
+      },
+      [&vertex_of](int64_t total) { vertex_of.resize(size_t(total)); },
+      [&](int64_t b, int64_t e, int64_t at) {
+        bool ok = true;
+        for (int64_t v = b; v < e; ++v) {
+          if (tv[v]) {
+            id[v] = int32_t(at);
+            vertex_of[size_t(at++)] = int32_t(v);
+            vertex_corner[v] = -1;
+            fan[v] = 0;
+            continue;
+          }
+          id[v] = -1;
+          ok &= v < old_nv;  // new vertices are touched
+          vertex_corner[v] = v < old_nv ? remap(vertex_corner_[v]) : -1;
+          fan[v] = v < old_nv ? fan_[v] : 0;
+        }
+        if (!ok) consistent.store(false, std::memory_order_relaxed);
+      }));
+  if (!consistent.load()) return false;
+  // The touched vertices matched as build() matches every vertex: their
+  // corners listed in corner order, without branches (on a level that
+  // changed much, whether a corner is touched follows no pattern) while the
+  // chunk has room for a face's three stores (the spare ones are written
+  // over by the next entries).
+  std::vector<int32_t> at;
+  const uint8_t* mask = touched_corners.data();
+  parallel_count_fill(
+      nf, threads, kCompactChunk,
+      [mask](int64_t b, int64_t e) {
+        int64_t n = 0;
+        for (int64_t f = b; f < e; ++f) n += kBits[mask[f]];
+        return n;
+      },
+      [&at](int64_t total) { at.resize(size_t(total)); },
+      [&at, mask](int64_t b, int64_t e, int64_t n, int64_t end) {
+        int32_t* list = at.data();
+        for (int64_t f = b; f < e; ++f) {
+          const unsigned m = mask[f];
+          if (m == 0) continue;  // after the first levels nearly every face
+          if (end - n >= 3) {
+            for (int k = 0; k < 3; ++k) {
+              list[n] = int32_t(3 * f + k);
+              n += m >> k & 1;
+            }
+          } else {
+            for (int k = 0; k < 3; ++k)
+              if (m >> k & 1) list[n++] = int32_t(3 * f + k);
+          }
+        }
+      });
   VertexCorners vc;
   vc.build_some(cv, at, id, runs);
   parallel_for(runs, threads, [&](int64_t begin, int64_t end) {

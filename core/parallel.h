@@ -6,8 +6,11 @@
 // combine the chunks in order).
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <functional>
+#include <type_traits>
+#include <vector>
 
 namespace iteas {
 
@@ -60,5 +63,38 @@ namespace iteas {
 // For loops whose indices are already coarse chunks of work.
 inline void parallel_for_chunks(int64_t n, int threads, const std::function<void(int64_t, int64_t)>& body) {
   parallel_for(n, threads, body, 1);
+}
+
+// A compaction in two parallel passes over fixed chunks of [0, n):
+// count(begin, end) says how many entries a chunk will write; the counts
+// are summed in chunk order; prepare(total) runs once, on the caller (to
+// size the output); fill(begin, end, at) writes the chunk's entries from
+// position |at|. Every entry lands where a serial pass in index order would
+// put it, whatever the threads. fill may also take a fourth argument, the
+// end of the chunk's entries. On one thread the whole range is one chunk.
+// The count is an integer, or a struct of
+// several (value-initialised to zero, summed with +). Returns the total.
+template <typename Count, typename Prepare, typename Fill>
+auto parallel_count_fill(int64_t n, int threads, int64_t chunk, const Count& count, const Prepare& prepare,
+                         const Fill& fill) {
+  using T = decltype(count(int64_t(0), int64_t(0)));
+  if (resolve_threads(threads) <= 1) chunk = std::max<int64_t>(n, 1);  // one thread: one chunk
+  const int64_t chunks = n <= 0 ? 0 : (n + chunk - 1) / chunk;
+  std::vector<T> at(size_t(chunks) + 1, T());
+  parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) at[size_t(k) + 1] = count(k * chunk, std::min(n, (k + 1) * chunk));
+  });
+  for (int64_t k = 0; k < chunks; ++k) at[size_t(k) + 1] = at[size_t(k)] + at[size_t(k) + 1];
+  prepare(at[size_t(chunks)]);
+  parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) {
+      const int64_t begin = k * chunk, end = std::min(n, (k + 1) * chunk);
+      if constexpr (std::is_invocable_v<const Fill&, int64_t, int64_t, T, T>)
+        fill(begin, end, at[size_t(k)], at[size_t(k) + 1]);
+      else
+        fill(begin, end, at[size_t(k)]);
+    }
+  });
+  return at[size_t(chunks)];
 }
 }  // namespace iteas

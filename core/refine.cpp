@@ -6,6 +6,7 @@
 #include <cstring>
 #include <limits>
 #include <numeric>
+#include <stdexcept>
 #include <type_traits>
 #include <unordered_map>
 #include <utility>
@@ -676,13 +677,13 @@ bool poor_merge(const double* a, const double* m, const double* b, const double*
   });
 }
 
-// Would bisecting face f at its one split edge make a triangle whose smallest
-// angle is under the floor, at any point the sliver guard may leave on that
-// edge — or would the later merge of the pair around that point?
-// Then the closure splits f 1 -> 4 instead (its children keep its shape).
-bool poor_green(const State& s, const Mesh& m, int32_t f, const std::vector<uint8_t>& split) {
+// Would bisecting face f at its one split edge (opposite its corner k) make
+// a triangle whose smallest angle is under the floor, at any point the sliver
+// guard may leave on that edge — or would the later merge of the pair around
+// that point? Then the closure splits f 1 -> 4 instead (its children keep its
+// shape).
+bool poor_green(const State& s, const Mesh& m, int32_t f, int k) {
   if (s.floor_sin2 <= 0) return false;
-  const int k = split[3 * f] ? 0 : (split[3 * f + 1] ? 1 : 2);
   int32_t c = 3 * f + k;
   const int32_t o = s.ct.opposite(c);
   if (o >= 0 && o < c) c = o;  // the stencil as the level will evaluate it
@@ -744,38 +745,57 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
   // old ones, a kept green pair too): listed once, in face order.
   std::vector<int32_t> made;
   const int32_t nf = m.num_faces();
-  for (int32_t f = 0; f < nf; ++f)
-    if (kept_from[f] < 0) made.push_back(f);
+  const int32_t* from = kept_from.data();
+  parallel_count_fill(
+      nf, s.threads, kChunk,
+      [from](int64_t b, int64_t e) {
+        return int64_t(std::count_if(from + b, from + e, [](int32_t x) { return x < 0; }));
+      },
+      [&made](int64_t total) { made.resize(size_t(total)); },
+      [from, &made](int64_t b, int64_t e, int64_t at) {
+        for (int64_t f = b; f < e; ++f)
+          if (from[f] < 0) made[size_t(at++)] = int32_t(f);
+      });
   // Each round moves every marked vertex one step; a vertex stops at the
   // midpoint, so rounds end when no poor face has a vertex left to move.
   // After the first round only faces with a vertex the last round moved can
-  // change their verdict, so only those are looked at again.
+  // change their verdict, so only those are looked at again. The faces are
+  // judged on all threads: a vertex is marked when any of its faces is poor
+  // (the same byte stored by whichever thread finds one).
   for (int round = 0; round < 8 * kGuardSteps; ++round) {
     std::fill(mark.begin(), mark.end(), 0);
-    bool any = false;
-    for (const int32_t f : made) {
-      // A new triangle, or a green pair with a new vertex whose later merge
-      // would be poor (a pair born inside a merged pair's split was never
-      // checked by the closure: its parent is itself new).
-      const int32_t* v = &m.corner_vertex[3 * size_t(f)];
-      const bool pair = s.green[f] == 1;  // (a, m, c) and (m, b, c)
-      const int32_t q[4] = {v[0], v[1], v[2], pair ? m.corner_vertex[3 * size_t(f) + 4] : -1};
-      bool fresh = false, touched = round == 0;
-      for (int k = 0; k < 4; ++k)
-        if (q[k] >= nv) {
-          fresh = true;
-          touched = touched || moved[q[k] - nv];
-        }
-      if (!fresh || !touched) continue;  // an old face, or as it was last round
-      double p[4][3];
-      for (int k = 0; k < (pair ? 4 : 3); ++k) load_point(m, q[k], p[k]);
-      const bool poor = below_floor(p[0], p[1], p[2], s.floor_sin2) ||
-                        (pair && poor_merge(p[0], p[1], p[3], p[2], s.floor_sin2));
-      if (!poor) continue;
-      for (int k = 0; k < 4; ++k)
-        if (q[k] >= nv && step[q[k] - nv] < kGuardSteps) { mark[q[k] - nv] = 1; any = true; }
-    }
-    if (!any) break;
+    std::atomic<bool> marked{false};
+    parallel_for(int64_t(made.size()), s.threads, [&](int64_t b, int64_t e) {
+      bool any = false;
+      for (int64_t i = b; i < e; ++i) {
+        const int32_t f = made[size_t(i)];
+        // A new triangle, or a green pair with a new vertex whose later merge
+        // would be poor (a pair born inside a merged pair's split was never
+        // checked by the closure: its parent is itself new).
+        const int32_t* v = &m.corner_vertex[3 * size_t(f)];
+        const bool pair = s.green[f] == 1;  // (a, m, c) and (m, b, c)
+        const int32_t q[4] = {v[0], v[1], v[2], pair ? m.corner_vertex[3 * size_t(f) + 4] : -1};
+        bool fresh = false, touched = round == 0;
+        for (int k = 0; k < 4; ++k)
+          if (q[k] >= nv) {
+            fresh = true;
+            touched = touched || moved[q[k] - nv];
+          }
+        if (!fresh || !touched) continue;  // an old face, or as it was last round
+        double p[4][3];
+        for (int k = 0; k < (pair ? 4 : 3); ++k) load_point(m, q[k], p[k]);
+        const bool poor = below_floor(p[0], p[1], p[2], s.floor_sin2) ||
+                          (pair && poor_merge(p[0], p[1], p[3], p[2], s.floor_sin2));
+        if (!poor) continue;
+        for (int k = 0; k < 4; ++k)
+          if (q[k] >= nv && step[q[k] - nv] < kGuardSteps) {
+            __atomic_store_n(&mark[q[k] - nv], uint8_t(1), __ATOMIC_RELAXED);
+            any = true;
+          }
+      }
+      if (any) marked.store(true, std::memory_order_relaxed);
+    }, 1024);
+    if (!marked.load()) break;
     moved.swap(mark);  // every marked vertex moves now
     for (int64_t i = 0; i < ne; ++i) {
       if (!moved[i]) continue;
@@ -796,75 +816,155 @@ int64_t guard_slivers(const State& s, Mesh& m, const Array<int32_t>& old_cv, con
 //    does one with 1 split edge whose green bisection would be a sliver;
 //  * a green pair with any split edge or a selected member is merged back
 //    into its parent, whose two other edges then split (it is split 1 -> 4).
+// On several threads it is worked in rounds: each round looks at the faces whose
+// edges the last one split, and a split is marked by whichever thread gets
+// there first (an atomic exchange says who, and that thread lists the two
+// faces of the edge for the next round). The marks only grow and every face
+// is looked at again after each change to its edges, so the rounds end at
+// the same least fixed point whatever the order or the threads.
 void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& selected, Plan& plan) {
   const int32_t nf = m.num_faces();
-  const std::vector<uint8_t>& green = s.green;
+  const uint8_t* green = s.green.data();
   plan.split.assign(3 * size_t(nf), 0);
   plan.merged.assign(nf, 0);
   std::vector<uint8_t> sel(nf, 0);
-  std::vector<int32_t> work;
-  auto mark = [&](int32_t c) {
-    if (plan.split[c]) return;
-    plan.split[c] = 1;
-    work.push_back(c / 3);
-    const int32_t o = s.ct.opposite(c);
-    if (o >= 0) { plan.split[o] = 1; work.push_back(o / 3); }
+  uint8_t* split = plan.split.data();
+  uint8_t* merged = plan.merged.data();
+  auto is_split = [split](int64_t c) { return __atomic_load_n(&split[c], __ATOMIC_RELAXED) != 0; };
+  // Sets a flag, saying whether it was set already (an atomic exchange, a
+  // locked instruction, only where another thread may set it too).
+  const bool threads = s.threads > 1;
+  auto set = [threads](uint8_t* flag) {
+    if (threads) return __atomic_exchange_n(flag, uint8_t(1), __ATOMIC_RELAXED) != 0;
+    return std::exchange(*flag, uint8_t(1)) != 0;
   };
-  for (int32_t f : selected) {
-    sel[f] = 1;
-    if (green[f]) work.push_back(f);
-    else for (int k = 0; k < 3; ++k) mark(3 * f + k);
-  }
-  while (!work.empty()) {
-    const int32_t f = work.back();
-    work.pop_back();
+  // Marks the edge at corner c (both its corners); lists its faces when new.
+  auto mark = [&](int32_t c, std::vector<int32_t>& next) {
+    if (set(&split[c])) return;
+    next.push_back(c / 3);
+    const int32_t o = s.ct.opposite(c);
+    if (o >= 0) {
+      __atomic_store_n(&split[o], uint8_t(1), __ATOMIC_RELAXED);
+      next.push_back(o / 3);
+    }
+  };
+  // The rules at face f, on the splits as this thread sees them.
+  auto close = [&](int32_t f, std::vector<int32_t>& next) {
     if (green[f]) {
       const int32_t first = green[f] == 1 ? f : f - 1;
-      if (plan.merged[first]) continue;
+      if (__atomic_load_n(&merged[first], __ATOMIC_RELAXED)) return;
       bool need = sel[first] || sel[first + 1];
-      for (int k = 0; k < 6 && !need; ++k) need = plan.split[3 * first + k];
-      if (!need) continue;
-      plan.merged[first] = 1;
-      mark(3 * (first + 1) + 0);  // parent edge (b, c)
-      mark(3 * first + 1);        // parent edge (c, a)
-    } else {
-      const int sc = plan.split[3 * f] + plan.split[3 * f + 1] + plan.split[3 * f + 2];
-      if (sc == 2 || (sc == 1 && poor_green(s, m, f, plan.split))) for (int k = 0; k < 3; ++k) mark(3 * f + k);
+      for (int k = 0; k < 6 && !need; ++k) need = is_split(3 * first + k);
+      if (!need || set(&merged[first])) return;
+      mark(3 * (first + 1) + 0, next);  // parent edge (b, c)
+      mark(3 * first + 1, next);        // parent edge (c, a)
+      return;
+    }
+    const bool x[3] = {is_split(3 * f), is_split(3 * f + 1), is_split(3 * f + 2)};
+    const int sc = x[0] + x[1] + x[2];
+    if (sc == 2 || (sc == 1 && poor_green(s, m, f, x[0] ? 0 : (x[1] ? 1 : 2))))
+      for (int k = 0; k < 3; ++k) mark(3 * f + k, next);
+  };
+  // Each round's pieces list the next round's faces; the lists are joined
+  // in piece order (the order changes no result, only which faces repeat).
+  std::vector<int32_t> work;
+  auto round = [&](int64_t n, const std::function<void(int64_t, std::vector<int32_t>&)>& step) {
+    constexpr int64_t kPiece = 256;
+    const int64_t pieces = (n + kPiece - 1) / kPiece;
+    std::vector<std::vector<int32_t>> next(static_cast<size_t>(pieces));
+    parallel_for_chunks(pieces, s.threads, [&](int64_t b, int64_t e) {
+      for (int64_t p = b; p < e; ++p)
+        for (int64_t i = p * kPiece; i < std::min(n, (p + 1) * kPiece); ++i) step(i, next[size_t(p)]);
+    });
+    std::vector<int32_t> joined;
+    for (const std::vector<int32_t>& v : next) joined.insert(joined.end(), v.begin(), v.end());
+    work.swap(joined);
+  };
+  auto seed = [&](int32_t f, std::vector<int32_t>& next) {
+    if (green[f]) next.push_back(f);
+    else for (int k = 0; k < 3; ++k) mark(3 * f + k, next);
+  };
+  for (int32_t f : selected) sel[f] = 1;
+  if (!threads) {
+    // One thread: one list, worked from its end (no rounds).
+    for (int32_t f : selected) seed(f, work);
+    while (!work.empty()) {
+      const int32_t f = work.back();
+      work.pop_back();
+      close(f, work);
+    }
+  } else {
+    round(int64_t(selected.size()), [&](int64_t i, std::vector<int32_t>& next) { seed(selected[size_t(i)], next); });
+    while (!work.empty()) {
+      const std::vector<int32_t> faces = std::move(work);
+      round(int64_t(faces.size()), [&](int64_t i, std::vector<int32_t>& next) { close(faces[size_t(i)], next); });
     }
   }
-  // The inner edge of a merged pair disappears with it.
-  int64_t tris = 0;
-  for (int32_t f = 0; f < nf; ++f) {
-    if (green[f] == 2) continue;
-    if (green[f] == 1) {
-      if (plan.merged[f]) {
-        plan.split[3 * f + 0] = plan.split[3 * (f + 1) + 1] = 0;
-        tris += 4 + plan.split[3 * f + 2] + plan.split[3 * (f + 1) + 2];
-      } else {
-        tris += 2;
+  // The inner edge of a merged pair disappears with it; the faces made are
+  // counted a chunk at a time (a pair at its first face).
+  const int64_t chunks = (int64_t(nf) + kChunk - 1) / kChunk;
+  std::vector<int64_t> made(size_t(chunks), 0);
+  parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) {
+      int64_t tris = 0;
+      for (int64_t f = k * kChunk; f < std::min<int64_t>(nf, (k + 1) * kChunk); ++f) {
+        if (green[f] == 2) continue;
+        if (green[f] == 1) {
+          if (merged[f]) {
+            split[3 * f + 0] = split[3 * (f + 1) + 1] = 0;
+            tris += 4 + split[3 * f + 2] + split[3 * (f + 1) + 2];
+          } else {
+            tris += 2;
+          }
+          continue;
+        }
+        const int sc = split[3 * f] + split[3 * f + 1] + split[3 * f + 2];
+        tris += sc == 0 ? 1 : (sc == 1 ? 2 : 4);
       }
-      continue;
+      made[size_t(k)] = tris;
     }
-    const int sc = plan.split[3 * f] + plan.split[3 * f + 1] + plan.split[3 * f + 2];
-    tris += sc == 0 ? 1 : (sc == 1 ? 2 : 4);
-  }
-  plan.triangles = tris;
+  });
+  plan.triangles = std::accumulate(made.begin(), made.end(), int64_t(0));
 }
 
-struct Emitter {
-  Mesh& m;
-  bool wedges, groups;
+// The faces an adaptive level makes, in parent order.
+struct EmittedFaces {
   Array<int32_t> cv, cw;
   std::vector<int32_t> fg;
   std::vector<uint8_t> green;
-  LevelStats& ls;
   // Per emitted face, the parent it copies unchanged, or -1 (State::Carried).
   std::vector<int32_t> from;
   // Stall detection (when on): the born value of every emitted face — the
   // parent's bend for red children, inherited for kept faces and greens.
+  std::vector<float> born;
+};
+
+// How many faces adaptive_level makes of old face f (evert: its split edges'
+// new vertices, -1 where not split): what Emitter makes of it. A green
+// pair's are counted at its first face.
+inline int emitted_faces(const uint8_t* green, const uint8_t* merged, const int32_t* evert, int64_t f) {
+  if (green[f] == 2) return 0;
+  const int32_t* mid = evert + 3 * f;
+  if (green[f] == 1) {
+    if (!merged[f]) return 2;
+    // The merged parent's four children; the two on its old halves split
+    // when their outer edge does.
+    return 2 + (mid[2] >= 0 ? 2 : 1) + (mid[5] >= 0 ? 2 : 1);
+  }
+  const int sc = (mid[0] >= 0) + (mid[1] >= 0) + (mid[2] >= 0);
+  return sc == 0 ? 1 : (sc == 1 ? 2 : 4);
+}
+
+// Writes the faces made of a run of parents into EmittedFaces from face |n|
+// on (the positions emitted_faces gives the run).
+struct Emitter {
+  const Mesh& m;
+  bool wedges, groups;
+  EmittedFaces& out;
+  int64_t n;  // the next face written
+  int64_t green_splits = 0, red_splits = 0;
   struct Born {
     bool on = false;
-    std::vector<float> values;
     float red = INFINITY, kept = INFINITY;  // for the parent being emitted
     bool in_red = false;
   } born;
@@ -874,25 +974,28 @@ struct Emitter {
   // |kept_born| (per face; null: INFINITY), in bulk (late levels keep
   // nearly every face).
   void copy(int32_t f, int32_t e, const float* kept_born) {
-    for (int32_t h = f; h < e; ++h) from.push_back(h);
+    std::iota(out.from.begin() + n, out.from.begin() + n + (e - f), f);
     if (born.on) {
-      if (kept_born) born.values.insert(born.values.end(), kept_born + f, kept_born + e);
-      else born.values.insert(born.values.end(), size_t(e - f), INFINITY);
+      if (kept_born) std::copy(kept_born + f, kept_born + e, out.born.begin() + n);
+      else std::fill(out.born.begin() + n, out.born.begin() + n + (e - f), INFINITY);
     }
-    cv.insert(cv.end(), m.corner_vertex.begin() + 3 * size_t(f), m.corner_vertex.begin() + 3 * size_t(e));
-    if (wedges) cw.insert(cw.end(), m.corner_wedge.begin() + 3 * size_t(f), m.corner_wedge.begin() + 3 * size_t(e));
-    if (groups) fg.insert(fg.end(), m.face_group.begin() + f, m.face_group.begin() + e);
-    green.insert(green.end(), size_t(e - f), uint8_t(0));
+    std::copy(m.corner_vertex.begin() + 3 * size_t(f), m.corner_vertex.begin() + 3 * size_t(e), out.cv.begin() + 3 * n);
+    if (wedges)
+      std::copy(m.corner_wedge.begin() + 3 * size_t(f), m.corner_wedge.begin() + 3 * size_t(e), out.cw.begin() + 3 * n);
+    if (groups) std::copy(m.face_group.begin() + f, m.face_group.begin() + e, out.fg.begin() + n);
+    std::fill(out.green.begin() + n, out.green.begin() + n + (e - f), uint8_t(0));
+    n += e - f;
   }
   void face(const int32_t v[3], const int32_t w[3], int32_t g, uint8_t gflag, int32_t kept_from = -1) {
-    from.push_back(kept_from);
-    if (born.on) born.values.push_back(born.in_red ? born.red : born.kept);
+    out.from[n] = kept_from;
+    if (born.on) out.born[n] = born.in_red ? born.red : born.kept;
     for (int k = 0; k < 3; ++k) {
-      cv.push_back(v[k]);
-      if (wedges) cw.push_back(w[k]);
+      out.cv[3 * n + k] = v[k];
+      if (wedges) out.cw[3 * n + k] = w[k];
     }
-    if (groups) fg.push_back(g);
-    green.push_back(gflag);
+    if (groups) out.fg[n] = g;
+    out.green[n] = gflag;
+    ++n;
   }
   // A face whose edges opposite local corner k split at mid[k] (-1: not):
   // none -> kept; one -> green bisection; three -> red 1 -> 4.
@@ -910,10 +1013,10 @@ struct Emitter {
       const int32_t v2[3] = {mid[k], v[k2], v[k]}, w2[3] = {mw[k], w[k2], w[k]};
       face(v1, w1, g, 1);
       face(v2, w2, g, 2);
-      ++ls.green_splits;
+      ++green_splits;
       return;
     }
-    ++ls.red_splits;
+    ++red_splits;
     born.in_red = true;
     for (int j = 0; j < 3; ++j) {
       const int j1 = (j + 1) % 3, j2 = (j + 2) % 3;
@@ -936,31 +1039,65 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   const bool wedges = m.has_wedges();
   const Array<int32_t>& opp = s.ct.opposites();
 
-  // Topology: number the split edges and their wedges in corner order.
-  // (No wedge numbers where the mesh has no wedges: every vertex is its own.)
-  std::vector<int32_t> evert(nc, -1), ewedge(wedges ? nc : 0, -1), edges;
-  auto wedge_at = [&](int64_t c) { return wedges ? ewedge[c] : -1; };
-  int32_t next_v = nv, next_w = m.wedge_count();
+  // Topology: number the split edges and their wedges in corner order, a
+  // chunk of corners at a time (counted, then numbered from the chunk's
+  // first numbers). (No wedge numbers where the mesh has no wedges: every
+  // vertex is its own.)
+  Array<int32_t> evert(nc), ewedge(wedges ? nc : 0);
+  std::vector<int32_t> edges;
   std::vector<WedgePair> wedge_src;  // (a, b) per new wedge
-  for (int32_t c = 0; c < nc; ++c) {
-    if (!plan.split[c] || !(opp[c] < 0 || c < opp[c])) continue;
-    const int32_t o = opp[c];
-    evert[c] = next_v;
-    if (o >= 0) evert[o] = next_v;
-    ++next_v;
-    edges.push_back(c);
-    if (!wedges) continue;
-    ewedge[c] = next_w++;
-    wedge_src.emplace_back(m.corner_wedge[next_corner(c)], m.corner_wedge[prev_corner(c)]);
-    if (o < 0) continue;
-    if (m.corner_wedge[next_corner(c)] == m.corner_wedge[prev_corner(o)] &&
-        m.corner_wedge[prev_corner(c)] == m.corner_wedge[next_corner(o)]) {
-      ewedge[o] = ewedge[c];
-    } else {
-      ewedge[o] = next_w++;
-      wedge_src.emplace_back(m.corner_wedge[next_corner(o)], m.corner_wedge[prev_corner(o)]);
-    }
-  }
+  auto wedge_at = [&](int64_t c) { return wedges ? ewedge[c] : -1; };
+  struct Numbers {
+    int64_t vertices = 0, wedges = 0;
+    Numbers operator+(const Numbers& o) const { return {vertices + o.vertices, wedges + o.wedges}; }
+  };
+  const uint8_t* split = plan.split.data();
+  const int32_t* op = opp.data();
+  const int32_t* cw_old = wedges ? m.corner_wedge.data() : nullptr;
+  // The first corner of a split edge; does it carry the same two wedges on both sides?
+  auto numbered = [split, op](int64_t c) { return split[c] && (op[c] < 0 || c < op[c]); };
+  auto shared = [cw_old](int64_t c, int64_t o) {
+    return cw_old[next_corner(c)] == cw_old[prev_corner(o)] && cw_old[prev_corner(c)] == cw_old[next_corner(o)];
+  };
+  const int32_t w0 = m.wedge_count();
+  const Numbers added = parallel_count_fill(
+      nc, s.threads, kChunk,
+      [&](int64_t b, int64_t e) {
+        // (Every corner -1 first: an edge's second corner may lie in a later chunk.)
+        std::fill(evert.begin() + b, evert.begin() + e, -1);
+        if (wedges) std::fill(ewedge.begin() + b, ewedge.begin() + e, -1);
+        Numbers k;
+        for (int64_t c = b; c < e; ++c) {
+          if (!numbered(c)) continue;
+          ++k.vertices;
+          if (wedges) k.wedges += op[c] < 0 || shared(c, op[c]) ? 1 : 2;
+        }
+        return k;
+      },
+      [&](const Numbers& total) {
+        edges.resize(size_t(total.vertices));
+        wedge_src.resize(size_t(total.wedges));
+      },
+      [&](int64_t b, int64_t e, Numbers at) {
+        for (int64_t c = b; c < e; ++c) {
+          if (!numbered(c)) continue;
+          const int32_t o = op[c], v = nv + int32_t(at.vertices);
+          evert[c] = v;
+          if (o >= 0) evert[o] = v;
+          edges[size_t(at.vertices++)] = int32_t(c);
+          if (!wedges) continue;
+          ewedge[c] = w0 + int32_t(at.wedges);
+          wedge_src[size_t(at.wedges++)] = WedgePair(cw_old[next_corner(c)], cw_old[prev_corner(c)]);
+          if (o < 0) continue;
+          if (shared(c, o)) {
+            ewedge[o] = ewedge[c];
+          } else {
+            ewedge[o] = w0 + int32_t(at.wedges);
+            wedge_src[size_t(at.wedges++)] = WedgePair(cw_old[next_corner(o)], cw_old[prev_corner(o)]);
+          }
+        }
+      });
+  const int32_t next_v = nv + int32_t(added.vertices), next_w = w0 + int32_t(added.wedges);
   // Data pass.
   grow_vertices(m, next_v);
   parallel_for(int64_t(edges.size()), s.threads, [&](int64_t b, int64_t e) {
@@ -968,112 +1105,151 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
     apply_stencils(m, s.bctx, edges.data() + b, e - b, nv + int32_t(b), terms);
   });
   if (wedges) {
-    const int32_t w0 = m.num_wedges();
+    const int32_t first = m.num_wedges();
     grow_wedges(m, next_w);
     for (int32_t c = 0; c < nc; ++c)
       if (ewedge[c] >= 0) m.wedge_vertex[ewedge[c]] = evert[c];
     parallel_for(int64_t(wedge_src.size()), s.threads, [&](int64_t b, int64_t e) {
-      blend_wedges(m, w0 + int32_t(b), wedge_src.data() + b, e - b);
+      blend_wedges(m, first + int32_t(b), wedge_src.data() + b, e - b);
     });
   }
 
-  // Topology: emit the new faces in parent order.
-  Emitter em{m, wedges, !m.face_group.empty(), {}, {}, {}, {}, ls, {}, {}};
+  // Topology: emit the new faces in parent order, a chunk of parents at a
+  // time (their faces counted first, then written from the chunk's first).
+  const bool groups = !m.face_group.empty();
+  EmittedFaces out;
   // What the next level may reuse (State::Carried).
   State::Carried& carried = s.carried;
-  em.from.reserve(plan.triangles);
   carried.touched.assign(size_t(next_v), 0);
   std::fill(carried.touched.begin() + nv, carried.touched.end(), uint8_t(1));
+  // (Old vertices are touched by any of their faces' chunks: the same byte
+  // whichever thread stores it.)
+  uint8_t* touched = carried.touched.data();
   auto touch = [&](int32_t f) {
-    for (int k = 0; k < 3; ++k) carried.touched[m.corner_vertex[3 * size_t(f) + k]] = 1;
+    for (int k = 0; k < 3; ++k)
+      __atomic_store_n(&touched[m.corner_vertex[3 * size_t(f) + k]], uint8_t(1), __ATOMIC_RELAXED);
   };
-  em.cv.reserve(size_t(plan.triangles) * 3);
-  if (wedges) em.cw.reserve(size_t(plan.triangles) * 3);
-  em.green.reserve(plan.triangles);
-  em.born.on = s.stall > 0 && !fmax.empty();
-  if (em.born.on) em.born.values.reserve(plan.triangles);
+  const bool born_on = s.stall > 0 && !fmax.empty();
   auto bend = [&](int32_t f) { return std::isnan(fmax[f]) ? INFINITY : fmax[f]; };
   const int32_t none[3] = {-1, -1, -1};
   const float* kept_born = s.born.empty() ? nullptr : s.born.data();
-  for (int32_t f = 0; f < nf; ++f) {
-    // A run of faces neither green nor split: copied as they are.
-    int32_t e = f;
-    // (Split edges have vertex numbers >= 0, the others -1: all three are
-    // -1 when their bitwise and is negative.)
-    while (e < nf && s.green[e] == 0 && (evert[3 * size_t(e)] & evert[3 * size_t(e) + 1] & evert[3 * size_t(e) + 2]) < 0)
-      ++e;
-    if (e > f) {
-      em.copy(f, e, kept_born);
-      f = e - 1;
-      continue;
-    }
-    const uint8_t gflag = s.green[f];
-    if (gflag == 2) continue;
-    const int32_t g = m.group_of(f);
-    if (em.born.on) {
-      em.born.kept = s.born.empty() ? INFINITY : s.born[f];
-      em.born.red = bend(f);
-      // A merged pair's parent is split: all its faces are its children.
-      if (gflag == 1 && plan.merged[f]) em.born.kept = em.born.red = std::max(bend(f), bend(f + 1));
-    }
-    if (gflag == 1) {
-      const int32_t f2 = f + 1;
-      if (!plan.merged[f]) {
-        for (int32_t h : {f, f2}) {
-          int32_t v[3], w[3];
-          for (int k = 0; k < 3; ++k) { v[k] = m.corner_vertex[3 * h + k]; w[k] = m.wedge_of(3 * h + k); }
-          em.face(v, w, m.group_of(h), h == f ? 1 : 2, h);
-        }
+  const uint8_t* green = s.green.data();
+  const uint8_t* merged = plan.merged.data();
+  const int32_t* ev = evert.data();
+  std::atomic<int64_t> green_splits{0}, red_splits{0}, greens_merged{0};
+  std::atomic<bool> miscounted{false};
+  auto count = [&](int64_t b, int64_t e) {
+    int64_t n = 0;
+    for (int64_t f = b; f < e; ++f) n += emitted_faces(green, merged, ev, f);
+    return n;
+  };
+  auto prepare = [&](int64_t total) {
+    out.cv.resize(3 * size_t(total));
+    if (wedges) out.cw.resize(3 * size_t(total));
+    if (groups) out.fg.resize(size_t(total));
+    out.green.resize(size_t(total));
+    out.from.resize(size_t(total));
+    if (born_on) out.born.resize(size_t(total));
+  };
+  auto fill = [&](int64_t b, int64_t e_chunk, int64_t at, int64_t end) {
+    Emitter em{m, wedges, groups, out, at, 0, 0, {}};
+    em.born.on = born_on;
+    int64_t merges = 0;
+    for (int32_t f = int32_t(b); f < int32_t(e_chunk); ++f) {
+      // A run of faces neither green nor split: copied as they are.
+      int32_t e = f;
+      // (Split edges have vertex numbers >= 0, the others -1: all three are
+      // -1 when their bitwise and is negative.)
+      while (e < e_chunk && green[e] == 0 && (ev[3 * size_t(e)] & ev[3 * size_t(e) + 1] & ev[3 * size_t(e) + 2]) < 0)
+        ++e;
+      if (e > f) {
+        em.copy(f, e, kept_born);
+        f = e - 1;
         continue;
       }
-      touch(f);
-      touch(f2);
-      // Merge back: parent (a, b, c) with the old midpoint m on (a, b).
-      ++ls.greens_merged;
-      ++ls.red_splits;
-      const int32_t a = m.corner_vertex[3 * f], bb = m.corner_vertex[3 * f2 + 1], c = m.corner_vertex[3 * f + 2];
-      const int32_t wa = m.wedge_of(3 * f), wb = m.wedge_of(3 * f2 + 1), wc = m.wedge_of(3 * f + 2);
-      const int32_t m2 = m.corner_vertex[3 * f + 1], w2 = m.wedge_of(3 * f + 1);
-      const int32_t m0 = evert[3 * f2 + 0], w0 = wedge_at(3 * f2 + 0);
-      const int32_t m1 = evert[3 * f + 1], w1 = wedge_at(3 * f + 1);
-      // Children of the regular split; the halves (a, m) and (m, b) may split.
-      const int32_t F0v[3] = {a, m2, m1}, F0w[3] = {wa, w2, w1};
-      const int32_t F0m[3] = {-1, -1, evert[3 * f + 2]}, F0mw[3] = {-1, -1, wedge_at(3 * f + 2)};
-      const int32_t F1v[3] = {m2, bb, m0}, F1w[3] = {w2, wb, w0};
-      const int32_t F1m[3] = {-1, -1, evert[3 * f2 + 2]}, F1mw[3] = {-1, -1, wedge_at(3 * f2 + 2)};
-      const int32_t F2v[3] = {m1, m0, c}, F2w[3] = {w1, w0, wc};
-      const int32_t F3v[3] = {m0, m1, m2}, F3w[3] = {w0, w1, w2};
-      em.split(F0v, F0w, F0m, F0mw, g);
-      em.split(F1v, F1w, F1m, F1mw, g);
-      em.split(F2v, F2w, none, none, g);
-      em.split(F3v, F3w, none, none, g);
-      continue;
+      const uint8_t gflag = green[f];
+      if (gflag == 2) continue;
+      const int32_t g = m.group_of(f);
+      if (em.born.on) {
+        em.born.kept = kept_born ? kept_born[f] : INFINITY;
+        em.born.red = bend(f);
+        // A merged pair's parent is split: all its faces are its children.
+        if (gflag == 1 && merged[f]) em.born.kept = em.born.red = std::max(bend(f), bend(f + 1));
+      }
+      if (gflag == 1) {
+        const int32_t f2 = f + 1;
+        if (!merged[f]) {
+          for (int32_t h : {f, f2}) {
+            int32_t v[3], w[3];
+            for (int k = 0; k < 3; ++k) { v[k] = m.corner_vertex[3 * h + k]; w[k] = m.wedge_of(3 * h + k); }
+            em.face(v, w, m.group_of(h), h == f ? 1 : 2, h);
+          }
+          continue;
+        }
+        touch(f);
+        touch(f2);
+        // Merge back: parent (a, b, c) with the old midpoint m on (a, b).
+        ++merges;
+        ++em.red_splits;
+        const int32_t a = m.corner_vertex[3 * f], bb = m.corner_vertex[3 * f2 + 1], c = m.corner_vertex[3 * f + 2];
+        const int32_t wa = m.wedge_of(3 * f), wb = m.wedge_of(3 * f2 + 1), wc = m.wedge_of(3 * f + 2);
+        const int32_t m2 = m.corner_vertex[3 * f + 1], w2 = m.wedge_of(3 * f + 1);
+        const int32_t m0 = evert[3 * f2 + 0], w0 = wedge_at(3 * f2 + 0);
+        const int32_t m1 = evert[3 * f + 1], w1 = wedge_at(3 * f + 1);
+        // Children of the regular split; the halves (a, m) and (m, b) may split.
+        const int32_t F0v[3] = {a, m2, m1}, F0w[3] = {wa, w2, w1};
+        const int32_t F0m[3] = {-1, -1, evert[3 * f + 2]}, F0mw[3] = {-1, -1, wedge_at(3 * f + 2)};
+        const int32_t F1v[3] = {m2, bb, m0}, F1w[3] = {w2, wb, w0};
+        const int32_t F1m[3] = {-1, -1, evert[3 * f2 + 2]}, F1mw[3] = {-1, -1, wedge_at(3 * f2 + 2)};
+        const int32_t F2v[3] = {m1, m0, c}, F2w[3] = {w1, w0, wc};
+        const int32_t F3v[3] = {m0, m1, m2}, F3w[3] = {w0, w1, w2};
+        em.split(F0v, F0w, F0m, F0mw, g);
+        em.split(F1v, F1w, F1m, F1mw, g);
+        em.split(F2v, F2w, none, none, g);
+        em.split(F3v, F3w, none, none, g);
+        continue;
+      }
+      int32_t v[3], w[3], mid[3], mw[3];
+      for (int k = 0; k < 3; ++k) {
+        v[k] = m.corner_vertex[3 * f + k];
+        w[k] = m.wedge_of(3 * f + k);
+        mid[k] = evert[3 * f + k];
+        mw[k] = wedges ? ewedge[3 * f + k] : mid[k];
+      }
+      if (mid[0] >= 0 || mid[1] >= 0 || mid[2] >= 0) touch(f);
+      em.split(v, w, mid, mw, g, f);
     }
-    int32_t v[3], w[3], mid[3], mw[3];
-    for (int k = 0; k < 3; ++k) {
-      v[k] = m.corner_vertex[3 * f + k];
-      w[k] = m.wedge_of(3 * f + k);
-      mid[k] = evert[3 * f + k];
-      mw[k] = wedges ? ewedge[3 * f + k] : mid[k];
-    }
-    if (mid[0] >= 0 || mid[1] >= 0 || mid[2] >= 0) touch(f);
-    em.split(v, w, mid, mw, g, f);
+    if (em.n != end) miscounted.store(true, std::memory_order_relaxed);
+    green_splits += em.green_splits;
+    red_splits += em.red_splits;
+    greens_merged += merges;
+  };
+  if (s.threads <= 1) {
+    // One chunk, whose count the closure made (plan.triangles).
+    prepare(plan.triangles);
+    fill(0, nf, 0, plan.triangles);
+  } else {
+    parallel_count_fill(nf, s.threads, kChunk, count, prepare, fill);
   }
-  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(em.cv) + vbytes(em.cw) + vbytes(em.fg) +
-                      vbytes(em.green) + vbytes(plan.split) + vbytes(plan.merged) + vbytes(em.from));
-  m.corner_vertex.swap(em.cv);
-  if (wedges) m.corner_wedge.swap(em.cw);
-  if (em.groups) m.face_group.swap(em.fg);
-  s.green.swap(em.green);
-  s.born.swap(em.born.values);
-  carried.kept_from.swap(em.from);
+  if (miscounted.load()) throw std::logic_error("adaptive level: the faces made disagree with their count");
+  ls.green_splits += green_splits.load();
+  ls.red_splits += red_splits.load();
+  ls.greens_merged += greens_merged.load();
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(out.cv) + vbytes(out.cw) + vbytes(out.fg) +
+                      vbytes(out.green) + vbytes(plan.split) + vbytes(plan.merged) + vbytes(out.from));
+  m.corner_vertex.swap(out.cv);
+  if (wedges) m.corner_wedge.swap(out.cw);
+  if (groups) m.face_group.swap(out.fg);
+  s.green.swap(out.green);
+  s.born.swap(out.born);
+  carried.kept_from.swap(out.from);
   carried.theta.swap(s.theta);
   s.theta_current = false;
   carried.valid = s.carry && !s.input_split;
   // The old table is build(old, false)'s unless the input's split vertices.
   const bool renumber = s.incremental_table && !s.input_split;
   s.input_split = false;
-  if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, em.cv, edges, nv, carried.kept_from);
+  if (s.floor_sin2 > 0 && next_v > nv) ls.vertices_guarded = guard_slivers(s, m, out.cv, edges, nv, carried.kept_from);
   ls.vertices_added = next_v - nv;
   // Only the corners round changed faces are matched again; the rest of the
   // table is renumbered (the same table as a full build, which a test checks).

@@ -917,3 +917,61 @@ TEST(Parallel, WorkersWakingLateNeverTouchAFinishedLoop) {
     ASSERT_EQ(wrong, 0) << "round " << round << ", n " << n;
   }
 }
+
+// parallel_count_fill puts every entry where a serial pass in index order
+// would: a filter of random values, for several thread counts and chunk
+// sizes (one thread: one chunk), with a single count and with a struct of
+// two counts whose fill also gets its chunk's end.
+TEST(Parallel, CountAndFillMatchesASerialPass) {
+  std::mt19937 rng(7);
+  std::vector<int32_t> in(100003);
+  for (int32_t& x : in) x = int32_t(rng() % 1000);
+  std::vector<int32_t> kept, doubled;
+  for (int32_t x : in) {
+    if (x % 3 == 0) kept.push_back(x);
+    if (x % 5 == 0) { doubled.push_back(x); doubled.push_back(-x); }
+  }
+  struct Two {
+    int64_t kept = 0, doubled = 0;
+    Two operator+(const Two& o) const { return {kept + o.kept, doubled + o.doubled}; }
+  };
+  for (int threads : {1, 2, 3}) {
+    for (int64_t chunk : {1, 7, 1024, 200000}) {
+      SCOPED_TRACE(testing::Message() << threads << " threads, chunks of " << chunk);
+      std::vector<int32_t> out;
+      const int64_t n = iteas::parallel_count_fill(
+          int64_t(in.size()), threads, chunk,
+          [&](int64_t b, int64_t e) {
+            return int64_t(std::count_if(in.begin() + b, in.begin() + e, [](int32_t x) { return x % 3 == 0; }));
+          },
+          [&](int64_t total) { out.assign(size_t(total), -1); },
+          [&](int64_t b, int64_t e, int64_t at) {
+            for (int64_t i = b; i < e; ++i)
+              if (in[i] % 3 == 0) out[size_t(at++)] = in[i];
+          });
+      EXPECT_EQ(n, int64_t(kept.size()));
+      EXPECT_EQ(out, kept);
+      std::vector<int32_t> a, d;
+      std::atomic<int64_t> ends_wrong{0};
+      const Two t = iteas::parallel_count_fill(
+          int64_t(in.size()), threads, chunk,
+          [&](int64_t b, int64_t e) {
+            Two k;
+            for (int64_t i = b; i < e; ++i) { k.kept += in[i] % 3 == 0; k.doubled += in[i] % 5 == 0 ? 2 : 0; }
+            return k;
+          },
+          [&](const Two& total) { a.assign(size_t(total.kept), -1); d.assign(size_t(total.doubled), -1); },
+          [&](int64_t b, int64_t e, Two at, Two end) {
+            for (int64_t i = b; i < e; ++i) {
+              if (in[i] % 3 == 0) a[size_t(at.kept++)] = in[i];
+              if (in[i] % 5 == 0) { d[size_t(at.doubled++)] = in[i]; d[size_t(at.doubled++)] = -in[i]; }
+            }
+            if (at.kept != end.kept || at.doubled != end.doubled) ++ends_wrong;
+          });
+      EXPECT_EQ(t.kept, int64_t(kept.size()));
+      EXPECT_EQ(a, kept);
+      EXPECT_EQ(d, doubled);
+      EXPECT_EQ(ends_wrong.load(), 0);
+    }
+  }
+}
