@@ -1100,10 +1100,12 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   const int32_t next_v = nv + int32_t(added.vertices), next_w = w0 + int32_t(added.wedges);
   // Data pass.
   grow_vertices(m, next_v);
+  // (A stencil costs tens of ns: a level's last few thousand edges still
+  // make pieces for two threads.)
   parallel_for(int64_t(edges.size()), s.threads, [&](int64_t b, int64_t e) {
     std::vector<StencilTerm> terms;
     apply_stencils(m, s.bctx, edges.data() + b, e - b, nv + int32_t(b), terms);
-  });
+  }, 256);
   if (wedges) {
     const int32_t first = m.num_wedges();
     grow_wedges(m, next_w);
