@@ -72,8 +72,8 @@ inline void parallel_for_chunks(int64_t n, int threads, const std::function<void
 // position |at|. Every entry lands where a serial pass in index order would
 // put it, whatever the threads. fill may also take a fourth argument, the
 // end of the chunk's entries. On one thread the whole range is one chunk.
-// The count is an integer, or a struct of
-// several (value-initialised to zero, summed with +). Returns the total.
+// The count is an integer, or a struct of several (value-initialised to
+// zero, summed with +). Returns the total.
 template <typename Count, typename Prepare, typename Fill>
 auto parallel_count_fill(int64_t n, int threads, int64_t chunk, const Count& count, const Prepare& prepare,
                          const Fill& fill) {
