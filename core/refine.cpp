@@ -626,8 +626,25 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
 struct Plan {
   std::vector<uint8_t> split;   // per corner: its edge gets a new vertex
   std::vector<uint8_t> merged;  // per face (first green child): pair merged
+  // Per chunk of kChunk faces, the faces the level makes of the faces
+  // before it (chunks + 1 entries): where adaptive_level writes each chunk's.
+  std::vector<int64_t> made_before;
   int64_t triangles = 0;
 };
+
+// How many faces adaptive_level makes of face f, given which of the level's
+// corners have their edge split (split(c)): kept, 1; green bisection, 2;
+// red 1 -> 4, 4; a green pair's faces counted at its first face: 2 kept, or
+// merged back, its parent's four children, the two on the parent's old
+// halves bisected when their outer edge splits (the pair's inner edge is
+// not read).
+template <typename Split>
+inline int made_of(const uint8_t* green, const uint8_t* merged, const Split& split, int64_t f) {
+  if (green[f] == 2) return 0;
+  if (green[f] == 1) return merged[f] ? 2 + (split(3 * f + 2) ? 2 : 1) + (split(3 * f + 5) ? 2 : 1) : 2;
+  const int sc = int(split(3 * f)) + int(split(3 * f + 1)) + int(split(3 * f + 2));
+  return sc == 0 ? 1 : (sc == 1 ? 2 : 4);
+}
 
 // Is the smallest angle of triangle (p, q, r) under the floor whose squared
 // sine is sin2? (A triangle with coinciding points is.)
@@ -901,30 +918,23 @@ void close_selection(const State& s, const Mesh& m, const std::vector<int32_t>& 
     }
   }
   // The inner edge of a merged pair disappears with it; the faces made are
-  // counted a chunk at a time (a pair at its first face).
+  // counted a chunk at a time, and summed in chunk order.
   const int64_t chunks = (int64_t(nf) + kChunk - 1) / kChunk;
-  std::vector<int64_t> made(size_t(chunks), 0);
+  std::vector<int64_t>& made = plan.made_before;
+  made.assign(size_t(chunks) + 1, 0);
+  auto split_at = [split](int64_t c) { return split[c] != 0; };
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
       int64_t tris = 0;
       for (int64_t f = k * kChunk; f < std::min<int64_t>(nf, (k + 1) * kChunk); ++f) {
-        if (green[f] == 2) continue;
-        if (green[f] == 1) {
-          if (merged[f]) {
-            split[3 * f + 0] = split[3 * (f + 1) + 1] = 0;
-            tris += 4 + split[3 * f + 2] + split[3 * (f + 1) + 2];
-          } else {
-            tris += 2;
-          }
-          continue;
-        }
-        const int sc = split[3 * f] + split[3 * f + 1] + split[3 * f + 2];
-        tris += sc == 0 ? 1 : (sc == 1 ? 2 : 4);
+        if (green[f] == 1 && merged[f]) split[3 * f + 0] = split[3 * (f + 1) + 1] = 0;
+        tris += made_of(green, merged, split_at, f);
       }
-      made[size_t(k)] = tris;
+      made[size_t(k) + 1] = tris;
     }
   });
-  plan.triangles = std::accumulate(made.begin(), made.end(), int64_t(0));
+  for (int64_t k = 0; k < chunks; ++k) made[size_t(k) + 1] += made[size_t(k)];
+  plan.triangles = made.back();
 }
 
 // The faces an adaptive level makes, in parent order.
@@ -939,24 +949,8 @@ struct EmittedFaces {
   std::vector<float> born;
 };
 
-// How many faces adaptive_level makes of old face f (evert: its split edges'
-// new vertices, -1 where not split): what Emitter makes of it. A green
-// pair's are counted at its first face.
-inline int emitted_faces(const uint8_t* green, const uint8_t* merged, const int32_t* evert, int64_t f) {
-  if (green[f] == 2) return 0;
-  const int32_t* mid = evert + 3 * f;
-  if (green[f] == 1) {
-    if (!merged[f]) return 2;
-    // The merged parent's four children; the two on its old halves split
-    // when their outer edge does.
-    return 2 + (mid[2] >= 0 ? 2 : 1) + (mid[5] >= 0 ? 2 : 1);
-  }
-  const int sc = (mid[0] >= 0) + (mid[1] >= 0) + (mid[2] >= 0);
-  return sc == 0 ? 1 : (sc == 1 ? 2 : 4);
-}
-
 // Writes the faces made of a run of parents into EmittedFaces from face |n|
-// on (the positions emitted_faces gives the run).
+// on (the positions the closure counted: Plan::made_before).
 struct Emitter {
   const Mesh& m;
   bool wedges, groups;
@@ -1117,7 +1111,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   }
 
   // Topology: emit the new faces in parent order, a chunk of parents at a
-  // time (their faces counted first, then written from the chunk's first).
+  // time, each from where the closure counted the chunks before it end.
   const bool groups = !m.face_group.empty();
   EmittedFaces out;
   // What the next level may reuse (State::Carried).
@@ -1140,19 +1134,13 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
   const int32_t* ev = evert.data();
   std::atomic<int64_t> green_splits{0}, red_splits{0}, greens_merged{0};
   std::atomic<bool> miscounted{false};
-  auto count = [&](int64_t b, int64_t e) {
-    int64_t n = 0;
-    for (int64_t f = b; f < e; ++f) n += emitted_faces(green, merged, ev, f);
-    return n;
-  };
-  auto prepare = [&](int64_t total) {
-    out.cv.resize(3 * size_t(total));
-    if (wedges) out.cw.resize(3 * size_t(total));
-    if (groups) out.fg.resize(size_t(total));
-    out.green.resize(size_t(total));
-    out.from.resize(size_t(total));
-    if (born_on) out.born.resize(size_t(total));
-  };
+  const size_t total = size_t(plan.triangles);
+  out.cv.resize(3 * total);
+  if (wedges) out.cw.resize(3 * total);
+  if (groups) out.fg.resize(total);
+  out.green.resize(total);
+  out.from.resize(total);
+  if (born_on) out.born.resize(total);
   auto fill = [&](int64_t b, int64_t e_chunk, int64_t at, int64_t end) {
     Emitter em{m, wedges, groups, out, at, 0, 0, {}};
     em.born.on = born_on;
@@ -1226,13 +1214,11 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
     red_splits += em.red_splits;
     greens_merged += merges;
   };
-  if (s.threads <= 1) {
-    // One chunk, whose count the closure made (plan.triangles).
-    prepare(plan.triangles);
-    fill(0, nf, 0, plan.triangles);
-  } else {
-    parallel_count_fill(nf, s.threads, kChunk, count, prepare, fill);
-  }
+  parallel_for_chunks(int64_t(plan.made_before.size()) - 1, s.threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k)
+      fill(k * kChunk, std::min<int64_t>(nf, (k + 1) * kChunk), plan.made_before[size_t(k)],
+           plan.made_before[size_t(k) + 1]);
+  });
   if (miscounted.load()) throw std::logic_error("adaptive level: the faces made disagree with their count");
   ls.green_splits += green_splits.load();
   ls.red_splits += red_splits.load();

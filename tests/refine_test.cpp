@@ -169,8 +169,11 @@ TEST(Refine, AdaptiveWithEverythingSelectedEqualsUniform) {
   }
 }
 
-// Also the levels' counts: the adaptive levels' closure, face emission and
-// sliver guard run in rounds and chunks on two threads, in one pass on one.
+// Also the levels' counts: the adaptive levels' closure and sliver guard run
+// in rounds on two threads and in one pass on one, and their faces are
+// emitted in chunks. The counts must also add up to each level's triangles:
+// a red split makes 3 more, a green bisection 1, and a merged pair, counted
+// as a red split, one fewer than that (it was two faces).
 TEST(Refine, SameOutputForOneAndTwoThreads) {
   auto counts = [](const RefineStats& st) {
     std::vector<int64_t> v;
@@ -187,6 +190,11 @@ TEST(Refine, SameOutputForOneAndTwoThreads) {
       const Mesh a = refined(c.mesh, opts(mode, levels, 1), &one), b = refined(c.mesh, opts(mode, levels, 2), &two);
       EXPECT_TRUE(same_mesh(a, b));
       EXPECT_EQ(counts(one), counts(two));
+      int64_t before = one.triangles_in;
+      for (const LevelStats& l : one.levels) {
+        EXPECT_EQ(l.triangles_after - before, 3 * l.red_splits + l.green_splits - l.greens_merged) << "level " << l.level;
+        before = l.triangles_after;
+      }
     }
   }
 }
