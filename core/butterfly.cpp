@@ -278,13 +278,119 @@ bool copy_rings(const RingCopy& r, int64_t b, int64_t e, bool wide) {
 }
 }  // namespace
 
+RingTable& RingTable::operator=(const RingTable& o) {
+  if (this == &o) return *this;
+  kept = o.kept;
+  block = o.block;
+  side = o.side;
+  carried = o.carried;
+  complete = o.complete;
+  // Each part at the same place in its copied storage.
+  auto rebase = [&](auto& part, const auto& from) {
+    using T = std::remove_pointer_t<decltype(part.p_)>;
+    part.n_ = from.n_;
+    part.p_ = nullptr;
+    if (!from.p_) return;
+    const auto* f = reinterpret_cast<const int32_t*>(from.p_);
+    for (auto [mine, theirs] : {std::pair<Array<int32_t>*, const Array<int32_t>*>{&kept, &o.kept},
+                                {&block, &o.block},
+                                {&side, &o.side}}) {
+      if (theirs->empty() || f < theirs->data() || f >= theirs->data() + theirs->size()) continue;
+      part.p_ = reinterpret_cast<T*>(mine->data() + (f - theirs->data()));
+      return;
+    }
+  };
+  rebase(offset, o.offset);
+  rebase(corner, o.corner);
+  rebase(neighbour, o.neighbour);
+  rebase(point, o.point);
+  rebase(slot, o.slot);
+  return *this;
+}
+
+void RingTable::swap(RingTable& o) noexcept {
+  // The storage's buffers move with it, and the parts with them.
+  std::swap(offset, o.offset);
+  std::swap(corner, o.corner);
+  std::swap(neighbour, o.neighbour);
+  std::swap(point, o.point);
+  std::swap(slot, o.slot);
+  std::swap(carried, o.carried);
+  std::swap(complete, o.complete);
+  kept.swap(o.kept);
+  block.swap(o.block);
+  side.swap(o.side);
+}
+
+void RingTable::lay_out_kept(int32_t limit, int64_t corners) {
+  const int64_t at = corners > 0 ? (int64_t(limit) + 15) & ~int64_t(15) : int64_t(limit);
+  Array<int32_t>(size_t(at + corners)).swap(kept);
+  offset.p_ = kept.data();
+  offset.n_ = size_t(limit);
+  corner = RingPart<int32_t>();
+  if (corners > 0) {
+    corner.p_ = kept.data() + at;
+    corner.n_ = size_t(corners);
+  }
+}
+
+void RingTable::lay_out_block(int64_t entries, int64_t slot_corners, int64_t at_least) {
+  // Each part starts on a 64-byte line (16 int32s).
+  auto round = [](int64_t n) { return (n + 15) & ~int64_t(15); };
+  const int64_t size[4] = {carried ? 0 : entries + kRingPad, entries, slot_corners, 3 * entries};
+  int64_t words = 0;
+  for (int64_t n : size) words += round(n);
+  // The smallest part whose room brings the block down to |at_least|.
+  int aside = -1;
+  if (at_least > 0 && words > at_least)
+    for (int i = 0; i < 4; ++i)
+      if (size[i] > 0 && round(size[i]) >= words - at_least && (aside < 0 || size[i] < size[aside])) aside = i;
+  const bool fits = at_least > 0 && (words <= at_least || aside >= 0);
+  Array<int32_t>().swap(block);
+  Array<int32_t>(aside >= 0 ? size_t(size[aside]) : 0).swap(side);
+  block.reserve(size_t(fits ? at_least : words));
+  block.resize(size_t(aside >= 0 ? words - round(size[aside]) : words));
+  int32_t* at = block.data();
+  auto take = [&](int i, auto& part) {
+    using T = std::remove_pointer_t<decltype(part.p_)>;
+    part.n_ = size_t(size[i]);
+    if (i == aside) {
+      part.p_ = reinterpret_cast<T*>(side.data());
+      return;
+    }
+    part.p_ = reinterpret_cast<T*>(at);
+    at += round(size[i]);
+  };
+  if (!carried) {
+    take(0, corner);
+    std::fill(corner.begin(), corner.end(), -1);  // the padding matches no corner
+  }
+  take(1, neighbour);
+  take(2, slot);
+  std::fill(slot.begin(), slot.end(), -1);
+  take(3, point);
+}
+
+Array<int32_t> RingTable::release_block() {
+  Array<int32_t> out;
+  out.swap(block);
+  RingTable().swap(*this);
+  return out;
+}
+
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads, bool wide, bool slots) {
+                 int threads, bool wide, bool slots, int64_t at_least) {
   const int32_t* cv = mesh.corner_vertex.data();
+  const int64_t corners = int64_t(mesh.corner_vertex.size());
+  // Slots where wanted, the rings complete and dense.
+  auto slot_corners = [&](int64_t entries) {
+    return slots && out.complete && RingTable::dense(entries, corners) ? corners : 0;
+  };
   if (out.carried) {
+    const int64_t entries = int64_t(out.corner.size()) - kRingPad;
+    out.lay_out_block(entries, slot_corners(entries), at_least);
     out.carried = false;
-    out.neighbour.resize(out.corner.size() - kRingPad);
-    int32_t* const slot = out.prepare_slots(slots, int64_t(mesh.corner_vertex.size()));
+    int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
     parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         const int32_t x = out.corner[i];
@@ -296,22 +402,21 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     return;
   }
   limit = std::max(std::min(limit, mesh.num_vertices()), 0);
-  out.offset.resize(size_t(limit));  // every entry written by ring_offsets
+  out.lay_out_kept(limit, 0);
   // A complete extraordinary vertex without a ring: at or above the limit
   // (uniform levels make none), or below it without a fan.
   bool unringed = false;
   for (size_t v = size_t(limit); v < vclass.complete.size(); ++v)
     unringed |= vclass.complete[v] == VertexClass::kComplete;
   const int64_t total = ring_offsets(vclass, ct.vertex_corners().data(), limit, out.offset.data(), unringed, wide);
-  out.corner.assign(size_t(total) + kRingPad, -1);  // the padding matches no corner
-  out.neighbour.resize(size_t(total));
   // Slots where the rings are dense: written with the rings, each corner at
   // most once (a corner is at one vertex). They need every corner of a
   // ringed vertex in its ring (else an edge at a corner outside it would
   // read as having no extraordinary end there): known where the table
   // recorded the vertex's fan and its corners, and the fan holds them all.
   out.complete = !unringed;
-  int32_t* const slot = out.prepare_slots(slots, int64_t(mesh.corner_vertex.size()));
+  out.lay_out_block(total, slot_corners(total), at_least);
+  int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
   // A ring walked rather than read from a recorded fan, or a recorded fan
   // without all its vertex's corners (a walked ring may also be dropped,
   // its corners' slots written already): then no slots.
@@ -331,7 +436,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   }, 512);
   if (partial.load()) {
     out.complete = false;
-    Array<int32_t>().swap(out.slot);
+    out.drop_slots();
   }
   ring_points(mesh, vclass, out, threads, wide);
 }
@@ -342,19 +447,25 @@ void carry_rings(RingTable& rings, int threads) {
   // built the rings, each mostly over the entries it wrote (bunny-npm level
   // 1 on one thread: 5.7 µs; serial after two threads built the rings, 17.5
   // µs, half the lines coming from the other core, and the idle worker then
-  // fell asleep before the children's loop).
+  // fell asleep before the children's loop). The offsets and the moved
+  // corners go to a new |kept| of their own size; the block goes (its
+  // neighbours, slots and points are the next level's to make).
   const int64_t n = int64_t(rings.corner.size()) - kRingPad;
-  int32_t* corner = rings.corner.data();
-  parallel_for(n, threads, [corner](int64_t b, int64_t e) {
+  RingTable next;
+  next.lay_out_kept(int32_t(rings.offset.size()), n + kRingPad);
+  std::copy(rings.offset.begin(), rings.offset.end(), next.offset.begin());
+  const int32_t* from = rings.corner.data();
+  int32_t* to = next.corner.data();
+  parallel_for(n, threads, [from, to](int64_t b, int64_t e) {
     for (int64_t i = b; i < e; ++i) {
-      const int32_t x = corner[i];
-      corner[i] = x >= 0 ? kept_child_corner(x) : x;
+      const int32_t x = from[i];
+      to[i] = x >= 0 ? kept_child_corner(x) : x;
     }
   });
-  Array<int32_t>().swap(rings.neighbour);
-  Array<float>().swap(rings.point);
-  Array<int32_t>().swap(rings.slot);
-  rings.carried = true;
+  std::fill(to + n, to + n + kRingPad, -1);
+  next.carried = true;
+  next.complete = rings.complete;
+  rings.swap(next);
 }
 
 void discount_green_apices(const Mesh& mesh, const std::vector<uint8_t>& green, VertexClass& vclass) {
@@ -624,7 +735,6 @@ __attribute__((target("avx"))) void ring_points_range_avx(const RingArrays r, in
 #endif
 
 void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads, bool wide) {
-  rings.point.resize(3 * rings.neighbour.size());
   const RingArrays r{rings.offset.data(), vclass.valence.data(), rings.neighbour.data(), mesh.positions.data(),
                      rings.point.data()};
 #if ITEAS_AVX_SUM

@@ -4,7 +4,9 @@
 // to positions and to any per-vertex data (morph deltas), OpenSubdiv style.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 #include "core/corner_table.h"
@@ -38,15 +40,35 @@ struct VertexClass {
 // once per edge (same terms in the same order).
 constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width search
 
+// A stretch of a RingTable's storage, read and written like an array.
+template <typename T>
+class RingPart {
+ public:
+  T* data() const { return p_; }
+  size_t size() const { return n_; }
+  bool empty() const { return n_ == 0; }
+  T& operator[](size_t i) const { return p_[i]; }
+  T* begin() const { return p_; }
+  T* end() const { return p_ + n_; }
+  friend bool operator==(const RingPart& a, const RingPart& b) {
+    return a.n_ == b.n_ && std::equal(a.p_, a.p_ + a.n_, b.p_);
+  }
+
+ private:
+  friend struct RingTable;
+  T* p_ = nullptr;
+  size_t n_ = 0;
+};
+
 struct RingTable {
-  Array<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
-  Array<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
+  RingPart<int32_t> offset;  // per vertex below the limit: start in corner/neighbour, -1 = none
+  RingPart<int32_t> corner, neighbour;  // corner has kRingPad entries of -1 after the last ring
   // Set by carry_rings: offset and corner hold the rings of the next uniform
   // level (same vertices, same order); build_rings then only fills in the rest.
   bool carried = false;
   // Per ring entry, the extraordinary rule's point (3 floats) for the edge
   // from the vertex to that neighbour, from the positions build_rings saw.
-  Array<float> point;  // no zero fill (every entry is written)
+  RingPart<float> point;  // no zero fill (every entry is written)
   // Every complete extraordinary vertex of the level has its ring (the
   // input's vertices all below the limit, none left without; carried with
   // the rings, as uniform levels make no such vertex).
@@ -59,15 +81,44 @@ struct RingTable {
   // The edge of corner c thus finds its two ends' entries at c and at its
   // opposite, without dividing by 3. Empty otherwise (the rules then look
   // the corner up in its ring).
-  Array<int32_t> slot;
+  RingPart<int32_t> slot;
   static bool dense(int64_t entries, int64_t corners) { return 8 * entries >= corners; }
-  // |slot| sized for |corners| and all -1 when |wanted|, |complete| and the
-  // rings are dense; else emptied. The slots to write (null: none).
-  int32_t* prepare_slots(bool wanted, int64_t corners) {
-    if (wanted && complete && dense(int64_t(neighbour.size()), corners)) slot.assign(size_t(corners), -1);
-    else Array<int32_t>().swap(slot);
-    return slot.empty() ? nullptr : slot.data();
+
+  // Storage: |kept| holds offset (and corner, once carried); |block| the
+  // parts a level builds afresh, one after another: corner (unless
+  // carried), neighbour, slot, point. One block, so that the caller can take
+  // its memory for the level's next large array once the rings are done
+  // (release_block): refinement writes the children's corners there, where
+  // a new array came from fresh pages (level 1 of a 3,674-face mesh: 43 of
+  // its 107 fresh pages, and the heap trimmed in between). |side| holds the
+  // one part that would make the block larger than that array (its excess
+  // would stay with the array after the rings are gone).
+  Array<int32_t> kept, block, side;
+
+  RingTable() = default;
+  RingTable(const RingTable& o) { *this = o; }
+  RingTable& operator=(const RingTable& o);
+  RingTable(RingTable&& o) noexcept { swap(o); }
+  RingTable& operator=(RingTable&& o) noexcept {
+    RingTable(std::move(o)).swap(*this);
+    return *this;
   }
+  void swap(RingTable& o) noexcept;
+
+  // A new |kept| for the offsets (per vertex below |limit|) and, when
+  // |corners| > 0, that many ring corners after them; neither written.
+  void lay_out_kept(int32_t limit, int64_t corners);
+  // A new block for |entries| ring entries: corner (unless carried, with its
+  // kRingPad -1s after the rings), neighbour, slot (|slot_corners| entries,
+  // all -1; 0: none) and point. With |at_least| > 0, the block has room for
+  // exactly that many int32s, for release_block, when the parts fit or one
+  // of them set aside makes them fit; else it is their size. Every part but
+  // corner and slot is left unwritten.
+  void lay_out_block(int64_t entries, int64_t slot_corners, int64_t at_least);
+  // Drops the slots (their memory stays in the block).
+  void drop_slots() { slot = RingPart<int32_t>(); }
+  // The block's memory, the table emptied.
+  Array<int32_t> release_block();
 };
 
 struct ButterflyContext {
@@ -114,8 +165,10 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 // |wide| as in ButterflyContext (false: the baseline routines, for tests).
 // |slots|: make RingTable::slot where it applies; false when only the
 // general path will read the rings (creases or tension), which never reads them.
+// |at_least|: int32s the table's block should have room for, for the caller
+// to take with RingTable::release_block after the rings are used.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
-                 int threads = 1, bool wide = true, bool slots = true);
+                 int threads = 1, bool wide = true, bool slots = true, int64_t at_least = 0);
 
 // After a uniform split of this level (children of face f are 4f..4f+3, child
 // k keeping corner k): keeps only the rings' corners, moved to the children,

@@ -186,8 +186,8 @@ struct State {
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) +
-                    vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.offset) +
-                    vbytes(s.rings.corner) + vbytes(s.rings.neighbour) + vbytes(s.rings.point) + vbytes(s.rings.slot) +
+                    vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.kept) +
+                    vbytes(s.rings.block) + vbytes(s.rings.side) +
                     vbytes(s.carried.theta) + vbytes(s.carried.deviation) + vbytes(s.carried.kept_from) +
                     vbytes(s.carried.touched) + extra;
   s.peak = std::max(s.peak, b);
@@ -434,9 +434,14 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   grow_vertices(m, int64_t(nv) + ne);
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
   VertexClass& vclass = s.bctx.vclass;
+  // Rings carried to the next level keep their corners; else their block
+  // is made large enough for the children's corners, which take its memory
+  // once the rings are done (see RingTable::block).
+  const bool carry = derive_classes && more_levels;
   if (s.green.empty()) {
     // Slots only for the plain stencils' path (no creases, no tension).
-    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide, plain_stencils(s.bctx));
+    build_rings(m, s.ct, vclass, s.ring_limit, s.rings, s.threads, s.bctx.wide, plain_stencils(s.bctx),
+                carry ? 0 : 12 * int64_t(nf));
     s.bctx.rings = &s.rings;
   }
   s.ct.forget_fans();  // the arithmetic below changes the table
@@ -512,16 +517,22 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
 
   // The level's connectivity is about to change; the rings go before the
   // children's arrays come (peak memory), but for their corners when the next
-  // level will want them (the larger next level sets the peak then).
+  // level will want them (the larger next level sets the peak then). Their
+  // block's memory, already the process's, becomes the children's corners.
   s.bctx.rings = nullptr;
   note_peak(s, m, vbytes(evert) + vbytes(ewedge));
-  if (derive_classes && more_levels && !s.rings.offset.empty()) carry_rings(s.rings, s.threads);
-  else s.rings = RingTable();
+  Array<int32_t> spare;
+  if (carry && !s.rings.offset.empty()) carry_rings(s.rings, s.threads);
+  else spare = s.rings.release_block();
 
   // Topology pass 2: children. Then the new vertices' fan corners, while the
   // old opposites still tell canonical corners; then the old connectivity and
   // the edge maps go before the children's opposites are made (peak memory).
-  Array<int32_t> cv(12 * size_t(nf)), cw(wedges ? 12 * size_t(nf) : 0);
+  Array<int32_t> cv, cw(wedges ? 12 * size_t(nf) : 0);
+  // Only a block of the right size: any excess would stay with the corners.
+  if (spare.capacity() == 12 * size_t(nf)) cv.swap(spare);  // no copy: every entry is written below
+  Array<int32_t>().swap(spare);
+  cv.resize(12 * size_t(nf));
   std::vector<int32_t> fg(m.face_group.empty() ? 0 : 4 * size_t(nf));
   const int32_t* pcv = m.corner_vertex.data();
   parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {

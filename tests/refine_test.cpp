@@ -434,7 +434,9 @@ TEST(Refine, RingTableGivesTheWalksPoints) {
       EXPECT_TRUE(rings.neighbour == other->neighbour) << name;
       EXPECT_TRUE(rings.slot == other->slot) << name;
       ASSERT_EQ(rings.point.size(), other->point.size());
-      EXPECT_EQ(std::memcmp(rings.point.data(), other->point.data(), rings.point.size() * sizeof(float)), 0) << name;
+      EXPECT_TRUE(rings.point.empty() ||
+                  std::memcmp(rings.point.data(), other->point.data(), rings.point.size() * sizeof(float)) == 0)
+          << name;
     }
     std::vector<float> walked(3 * corners.size()), read(3 * corners.size());
     butterfly_points(ctx, corners.data(), int64_t(corners.size()), m.positions.data(), walked.data());
@@ -554,7 +556,7 @@ TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
   auto same = [](const RingTable& a, const RingTable& b, bool slots) {
     return a.offset == b.offset && a.corner == b.corner && a.neighbour == b.neighbour &&
            (!slots || (a.slot == b.slot && a.complete == b.complete)) && a.point.size() == b.point.size() &&
-           std::memcmp(a.point.data(), b.point.data(), a.point.size() * sizeof(float)) == 0;
+           (a.point.empty() || std::memcmp(a.point.data(), b.point.data(), a.point.size() * sizeof(float)) == 0);
   };
   int64_t recorded_rings = 0, carried_rings = 0, carried_slots = 0;
   for (const Case& c : cases(8000)) {
@@ -591,6 +593,80 @@ TEST(Refine, RecordedAndCarriedRingsAreTheWalks) {
   EXPECT_GT(recorded_rings, 1000);  // the recorded fans were used, not walked around
   EXPECT_GT(carried_rings, 1000);
   EXPECT_GT(carried_slots, 1000);  // the carried rings' slots were compared, not just empty
+}
+
+// The rings' block can be made the size of the level's children's corners,
+// which then take its memory (RingTable::release_block): the rings must be
+// the same whatever room the block was given, a copy of a table must read
+// its own storage, and the refinement's output must carry no excess room.
+TEST(Refine, RingBlockLendsItsMemoryToTheChildren) {
+  auto same = [](const RingTable& a, const RingTable& b) {
+    return a.offset == b.offset && a.corner == b.corner && a.neighbour == b.neighbour && a.slot == b.slot &&
+           a.complete == b.complete && a.point.size() == b.point.size() &&
+           (a.point.empty() || std::memcmp(a.point.data(), b.point.data(), a.point.size() * sizeof(float)) == 0);
+  };
+  int64_t lent_whole = 0, lent_with_part_aside = 0, not_lent = 0;
+  for (const Case& c : cases(8000)) {
+    SCOPED_TRACE(c.name);
+    Mesh m = c.mesh;
+    CornerTable ct;
+    ct.build(m, true, 2, true);
+    std::vector<uint8_t> sharp;
+    VertexClass vclass;
+    classify_vertices(m, ct, sharp, vclass, 2, mark_sharp_edges(ct, nullptr, 0, sharp, 1));
+    RingTable plain;
+    build_rings(m, ct, vclass, m.num_vertices(), plain, 2);
+    if (plain.neighbour.empty()) continue;
+    EXPECT_TRUE(plain.side.empty());
+    EXPECT_EQ(plain.block.capacity(), plain.block.size());  // no room asked for, none given
+    const int64_t children = 12 * int64_t(m.num_faces());
+    for (int64_t at_least : {children, 64 * children, int64_t(1)}) {
+      RingTable lent;
+      build_rings(m, ct, vclass, m.num_vertices(), lent, 2, true, true, at_least);
+      EXPECT_TRUE(same(lent, plain)) << at_least;
+      const int64_t capacity = int64_t(lent.block.capacity());
+      if (capacity == at_least) {
+        ++(lent.side.empty() ? lent_whole : lent_with_part_aside);
+        EXPECT_LE(int64_t(lent.block.size()), at_least);
+      } else {
+        // Too little room even with one part aside: the parts' own size.
+        ++not_lent;
+        EXPECT_TRUE(lent.side.empty());
+        EXPECT_EQ(capacity, int64_t(lent.block.size()));
+        EXPECT_GT(capacity, at_least);
+      }
+      if (at_least == 64 * children) {
+        EXPECT_EQ(capacity, at_least);
+      }
+
+      // A copy reads its own storage: spoil the original's, then compare.
+      RingTable copy = lent;
+      for (Array<int32_t>* a : {&lent.kept, &lent.side}) std::fill(a->begin(), a->end(), 0x7f7f7f7f);
+      Array<int32_t> taken = lent.release_block();
+      EXPECT_EQ(int64_t(taken.capacity()), capacity);  // the room given, not copied
+      EXPECT_TRUE(lent.offset.empty() && lent.point.empty() && lent.block.empty() && lent.side.empty());
+      std::fill(taken.begin(), taken.end(), 0x7f7f7f7f);
+      EXPECT_TRUE(same(copy, plain)) << at_least;
+    }
+  }
+  EXPECT_GT(lent_whole, 0);
+  EXPECT_GT(lent_with_part_aside, 0);  // bunny-npm: its rings outgrow its children's corners
+  EXPECT_GT(not_lent, 0);
+
+  // The output's corners fill their array exactly, at every level count, with
+  // and without statistics (the last level's array came from the rings).
+  for (const Case& c : cases(4000)) {
+    for (int levels : {1, 2}) {
+      for (bool statistics : {false, true}) {
+        Mesh out = c.mesh;
+        RefineHooks hooks;
+        hooks.statistics = statistics;
+        RefineStats st;
+        refine_mesh(out, opts(Mode::kUniform, levels), hooks, &st);
+        EXPECT_EQ(out.corner_vertex.capacity(), out.corner_vertex.size()) << c.name << " " << levels;
+      }
+    }
+  }
 }
 
 TEST(Refine, BudgetIsNeverExceeded) {
