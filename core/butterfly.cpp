@@ -368,6 +368,11 @@ void RingTable::lay_out_block(int64_t entries, int64_t slot_corners, int64_t at_
   take(1, neighbour);
   take(2, slot);
   std::fill(slot.begin(), slot.end(), -1);
+  // The points' floats live in int32 storage. They are written by
+  // ring_points and read by the stencils, each in a loop of its own (a call
+  // the compiler does not see through), and the children's corners written
+  // over them later in another: no access of one type can be moved past
+  // one of the other.
   take(3, point);
 }
 
