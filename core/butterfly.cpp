@@ -325,7 +325,7 @@ void RingTable::swap(RingTable& o) noexcept {
 void RingTable::lay_out_kept(int32_t limit, int64_t corners) {
   const int64_t at = corners > 0 ? (int64_t(limit) + 15) & ~int64_t(15) : int64_t(limit);
   Array<int32_t>(size_t(at + corners)).swap(kept);
-  offset.p_ = kept.data();
+  offset.p_ = limit > 0 ? kept.data() : nullptr;
   offset.n_ = size_t(limit);
   corner = RingPart<int32_t>();
   if (corners > 0) {
@@ -351,9 +351,12 @@ void RingTable::lay_out_block(int64_t entries, int64_t slot_corners, int64_t at_
   block.reserve(size_t(fits ? at_least : words));
   block.resize(size_t(aside >= 0 ? words - round(size[aside]) : words));
   int32_t* at = block.data();
+  // (An empty part points nowhere: its data() is null, as an empty array's.)
   auto take = [&](int i, auto& part) {
     using T = std::remove_pointer_t<decltype(part.p_)>;
     part.n_ = size_t(size[i]);
+    part.p_ = nullptr;
+    if (size[i] == 0) return;
     if (i == aside) {
       part.p_ = reinterpret_cast<T*>(side.data());
       return;
@@ -395,7 +398,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     const int64_t entries = int64_t(out.corner.size()) - kRingPad;
     out.lay_out_block(entries, slot_corners(entries), at_least);
     out.carried = false;
-    int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
+    int32_t* const slot = out.slot.data();  // null: no slots
     parallel_for(int64_t(out.neighbour.size()), threads, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i) {
         const int32_t x = out.corner[i];
@@ -421,7 +424,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
   // recorded the vertex's fan and its corners, and the fan holds them all.
   out.complete = !unringed;
   out.lay_out_block(total, slot_corners(total), at_least);
-  int32_t* const slot = out.slot.empty() ? nullptr : out.slot.data();
+  int32_t* const slot = out.slot.data();  // null: no slots
   // A ring walked rather than read from a recorded fan, or a recorded fan
   // without all its vertex's corners (a walked ring may also be dropped,
   // its corners' slots written already): then no slots.
@@ -518,7 +521,7 @@ struct View {
         ring_corner(ring_limit ? ctx.rings->corner.data() : nullptr),
         ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr),
         ring_point(ring_limit ? ctx.rings->point.data() : nullptr),
-        ring_slot(ring_limit && !ctx.rings->slot.empty() ? ctx.rings->slot.data() : nullptr) {}
+        ring_slot(ring_limit ? ctx.rings->slot.data() : nullptr) {}
   uint8_t green_of(int32_t corner) const { return kGreens ? green[corner / 3] : 0; }
   // No sharp flags (an empty array) means: sharp = boundary.
   bool is_sharp(int32_t x) const { return sharp ? sharp[x] != 0 : opp[x] < 0; }

@@ -40,7 +40,8 @@ struct VertexClass {
 // once per edge (same terms in the same order).
 constexpr int kRingPad = 8;  // entries after the last ring, for a fixed-width search
 
-// A stretch of a RingTable's storage, read and written like an array.
+// A stretch of a RingTable's storage, read and written like an array; an
+// empty one's data() is null.
 template <typename T>
 class RingPart {
  public:

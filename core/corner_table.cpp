@@ -73,7 +73,7 @@ struct VertexCorners {
   // The runs of some vertices only: run r holds the corners of the vertex v
   // with id[v] == r, in corner order as build() has them; |at| lists every
   // corner of those vertices in corner order.
-  void build_some(const Array<int32_t>& corner_vertex, const std::vector<int32_t>& at, const std::vector<int32_t>& id,
+  void build_some(const Array<int32_t>& corner_vertex, const Array<int32_t>& at, const Array<int32_t>& id,
                   int32_t runs) {
     offset.assign(size_t(runs) + 1, 0);
     for (int32_t c : at) ++offset[size_t(id[corner_vertex[c]]) + 1];
@@ -754,7 +754,9 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   if (!consistent.load()) return false;
   // Untouched vertices keep their corner (renumbered) and fan; touched ones
   // are numbered in vertex order (id: their run) for the matching below.
-  std::vector<int32_t> vertex_corner(nv), fan(nv), id(nv), vertex_of;
+  // (id, vertex_of and at below: no zero fill, every entry is written.)
+  std::vector<int32_t> vertex_corner(nv), fan(nv);
+  Array<int32_t> id(nv), vertex_of;
   const uint8_t* tv = touched.data();
   const int32_t runs = int32_t(parallel_count_fill(
       nv, threads, kCompactChunk,
@@ -787,7 +789,7 @@ bool CornerTable::update(const Mesh& mesh, const std::vector<int32_t>& kept_from
   // changed much, whether a corner is touched follows no pattern) while the
   // chunk has room for a face's three stores (the spare ones are written
   // over by the next entries).
-  std::vector<int32_t> at;
+  Array<int32_t> at;
   const uint8_t* mask = touched_corners.data();
   parallel_count_fill(
       nf, threads, kCompactChunk,
