@@ -30,10 +30,20 @@ constexpr int64_t kCompactChunk = 4096;
 // reads one contiguous run per vertex and nothing else.
 struct VertexCorners {
   static constexpr size_t kPad = 8;
+  // Per entry: its corner, and in one 8-byte pair the vertices after and
+  // before that corner in its face. The fill then makes two stores per corner
+  // where three arrays took three, each to a line of its own (bunny-npm,
+  // 11,022 corners: 16.0 against 19.1 us), and the AVX-512 matcher takes a
+  // run's next and previous vertices from one register.
+  struct Pair {
+    int32_t next, prev;
+  };
   std::vector<int32_t> offset;  // nv + 1
   Array<int32_t> corners;
-  Array<int32_t> nexts;         // corner_vertex[next_corner(corners[i])]
-  Array<int32_t> prevs;         // corner_vertex[prev_corner(corners[i])]
+  Array<Pair> pairs;
+  int32_t corner(int64_t i) const { return corners[size_t(i)]; }
+  int32_t next(int64_t i) const { return pairs[size_t(i)].next; }
+  int32_t prev(int64_t i) const { return pairs[size_t(i)].prev; }
   // Counting sort, on the calling thread whatever the threads. Split between
   // two threads it was slower than on one (bunny-npm: 17 µs on one thread):
   // by faces, a vertex's run held corners from both threads and its lines
@@ -45,11 +55,13 @@ struct VertexCorners {
     const int32_t nc = static_cast<int32_t>(corner_vertex.size());
     offset.resize(size_t(nv) + 1);
     // kPad entries after the last run, matching no vertex: a run of up to 8 is
-    // then compared 8 at a time without reading past the arrays.
+    // then compared 8 at a time without reading past the array.
     corners.resize(size_t(nc) + kPad);
-    nexts.resize(size_t(nc) + kPad);
-    prevs.resize(size_t(nc) + kPad);
-    for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
+    pairs.resize(size_t(nc) + kPad);
+    for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) {
+      corners[i] = -1;
+      pairs[i] = Pair{-1, -1};
+    }
     const int32_t* cv = corner_vertex.data();
     // at[v]: the count of v, then where its next corner goes.
     std::vector<int32_t> at(size_t(nv), 0);
@@ -61,14 +73,21 @@ struct VertexCorners {
       at[v] = offset[v];
     }
     offset[nv] = total;
-    int32_t *co = corners.data(), *ne = nexts.data(), *pr = prevs.data();
-    for (int32_t f = 0; f < nc; f += 3)
-      for (int k = 0; k < 3; ++k) {
-        const int32_t i = at[cv[f + k]]++;
-        co[i] = f + k;
-        ne[i] = cv[f + (k + 1) % 3];
-        pr[i] = cv[f + (k + 2) % 3];
-      }
+    int32_t* co = corners.data();
+    Pair* pa = pairs.data();
+    int32_t* a = at.data();
+    for (int32_t f = 0; f < nc; f += 3) {
+      const int32_t x = cv[f], y = cv[f + 1], z = cv[f + 2];
+      int32_t i = a[x]++;
+      co[i] = f;
+      pa[i] = Pair{y, z};
+      i = a[y]++;
+      co[i] = f + 1;
+      pa[i] = Pair{z, x};
+      i = a[z]++;
+      co[i] = f + 2;
+      pa[i] = Pair{x, y};
+    }
   }
   // The runs of some vertices only: run r holds the corners of the vertex v
   // with id[v] == r, in corner order as build() has them; |at| lists every
@@ -79,15 +98,16 @@ struct VertexCorners {
     for (int32_t c : at) ++offset[size_t(id[corner_vertex[c]]) + 1];
     for (int32_t r = 0; r < runs; ++r) offset[r + 1] += offset[r];
     corners.resize(at.size() + kPad);
-    nexts.resize(at.size() + kPad);
-    prevs.resize(at.size() + kPad);
-    for (size_t i = at.size(); i < at.size() + kPad; ++i) corners[i] = nexts[i] = prevs[i] = -1;
+    pairs.resize(at.size() + kPad);
+    for (size_t i = at.size(); i < at.size() + kPad; ++i) {
+      corners[i] = -1;
+      pairs[i] = Pair{-1, -1};
+    }
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
     for (int32_t c : at) {
       const int32_t i = fill[id[corner_vertex[c]]]++;
       corners[i] = c;
-      nexts[i] = corner_vertex[next_corner(c)];
-      prevs[i] = corner_vertex[prev_corner(c)];
+      pairs[i] = Pair{corner_vertex[next_corner(c)], corner_vertex[prev_corner(c)]};
     }
   }
 };
@@ -102,22 +122,23 @@ struct BitCounts {
 };
 constexpr BitCounts kBits;
 
-// In a's run [rb, re): how many entries have prev b (edges b -> a, |reverse|;
-// |match| the index in the run arrays of the last) and how many have next b
-// (edges a -> b, |same|). Runs of up to 8 (nearly every vertex) are compared
-// 8 at a time.
-inline void count_edges(const VertexCorners& vc, int32_t rb, int32_t re, int32_t b, int32_t& reverse, int32_t& same,
-                        int32_t& match) {
-  if (re - rb <= 8) {
-    const unsigned r = equal_mask8(vc.prevs.data() + rb, b, re - rb), s = equal_mask8(vc.nexts.data() + rb, b, re - rb);
+// In a run of n entries whose previous and next vertices are |prevs| and
+// |nexts| (at least 8 readable): how many entries have prev b (edges
+// b -> a, |reverse|; |match| the index in the run of the last) and how many
+// have next b (edges a -> b, |same|). Runs of up to 8 (nearly every vertex)
+// are compared 8 at a time.
+inline void count_edges(const int32_t* prevs, const int32_t* nexts, int32_t n, int32_t b, int32_t& reverse,
+                        int32_t& same, int32_t& match) {
+  if (n <= 8) {
+    const unsigned r = equal_mask8(prevs, b, n), s = equal_mask8(nexts, b, n);
     reverse = kBits[r];
     same = kBits[s];
-    match = r ? rb + 31 - __builtin_clz(r) : -1;
+    match = r ? 31 - __builtin_clz(r) : -1;
     return;
   }
-  for (int32_t j = rb; j < re; ++j) {
-    if (vc.prevs[j] == b) { ++reverse; match = j; }
-    same += vc.nexts[j] == b;
+  for (int32_t j = 0; j < n; ++j) {
+    if (prevs[j] == b) { ++reverse; match = j; }
+    same += nexts[j] == b;
   }
 }
 
@@ -160,9 +181,14 @@ __attribute__((always_inline)) inline bool match_manifold_n(const VertexCorners&
                                                             int32_t* opposite, int32_t* order, int32_t* order_next,
                                                             int32_t& first, int32_t& faces) {
   static_assert(kMax == 8 || kMax == 16, "runs of up to 8 or 9-16");
+  // The run's next and previous vertices apart (entries from n on belong to
+  // other runs or to the padding: read, never used).
   const int32_t* corners = vc.corners.data() + rb;
-  const int32_t* nexts = vc.nexts.data() + rb;
-  const int32_t* prevs = vc.prevs.data() + rb;
+  int32_t nexts[kMax], prevs[kMax];
+  for (int i = 0; i < kMax; ++i) {
+    nexts[i] = vc.next(rb + i);
+    prevs[i] = vc.prev(rb + i);
+  }
   int32_t right[kMax];
   unsigned bad = 0, matched = 0;
   for (int i = 0; i < n; ++i) {
@@ -237,6 +263,18 @@ __attribute__((target("avx2"), always_inline)) inline void walk_fan_avx2(const _
   faces = back ? int32_t(__builtin_ctz(back)) : n;
 }
 
+// The next and previous vertices of the eight entries from |p| on, lane i
+// holding entry i's: the pairs' even and odd lanes, put in order.
+__attribute__((target("avx2"), always_inline)) inline void load_pairs_avx2(const VertexCorners::Pair* p, __m256i& X,
+                                                                            __m256i& P) {
+  const __m256i a = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p));      // pairs 0-3
+  const __m256i b = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 4));  // pairs 4-7
+  const __m256i even = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+  const __m256i sa = _mm256_permutevar8x32_epi32(a, even), sb = _mm256_permutevar8x32_epi32(b, even);
+  X = _mm256_permute2x128_si256(sa, sb, 0x20);
+  P = _mm256_permute2x128_si256(sa, sb, 0x31);
+}
+
 // match_manifold for a run of n (3..8) entries in registers of eight lanes:
 // every entry's next vertex against the previous vertex of the entry k
 // places further round the run, for k = 0..n-1 (n compares for the whole
@@ -248,10 +286,9 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
                                                                   int32_t* opposite, int32_t* order,
                                                                   int32_t* order_next, int32_t& first,
                                                                   int32_t& faces) {
-  const int32_t* corners = vc.corners.data() + rb;
-  const __m256i P = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.prevs.data() + rb));
-  const __m256i X = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.nexts.data() + rb));
-  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(corners));
+  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.corners.data() + rb));
+  __m256i X, P;
+  load_pairs_avx2(vc.pairs.data() + rb, X, P);
   const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256i valid = _mm256_cmpgt_epi32(_mm256_set1_epi32(n), lane);
   __m256i hits = _mm256_setzero_si256(), hits_j = hits, offset = hits, right = hits;
@@ -285,13 +322,14 @@ __attribute__((target("avx2"))) inline bool match_manifold_avx2(const VertexCorn
   return true;
 }
 
-// Lanes 0-7 of row r: 2r, lanes 8-15: 2r + 1 (entry 2r's and 2r + 1's
-// previous vertex across a register of the run's next vertices twice over).
+// Lanes 0-7 of row r: entry 2r's previous vertex, lanes 8-15: entry
+// 2r + 1's (lanes 4r + 1 and 4r + 3 of the run's pairs), across a register
+// of the run's next vertices twice over.
 struct PairRows {
   alignas(64) int32_t r[4][16];
   constexpr PairRows() : r() {
     for (int k = 0; k < 4; ++k)
-      for (int i = 0; i < 16; ++i) r[k][i] = 2 * k + (i >> 3);
+      for (int i = 0; i < 16; ++i) r[k][i] = 2 * (2 * k + (i >> 3)) + 1;
   }
 };
 constexpr PairRows kPairRows;
@@ -305,17 +343,20 @@ constexpr PairRows kPairRows;
 __attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx512(
     const VertexCorners& vc, int32_t rb, int n, int32_t* opposite, int32_t* order, int32_t* order_next,
     int32_t& first, int32_t& faces) {
-  const int32_t* corners = vc.corners.data() + rb;
-  const __m256i X = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.nexts.data() + rb));
-  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(corners));
-  // The zero-masked forms: the plain ones start from an undefined register,
-  // which GCC 12 reports as maybe uninitialised.
-  const __m512i XX = _mm512_maskz_broadcast_i64x4(0xFF, X);
-  const __m512i PP = _mm512_maskz_loadu_epi32(0xFF, vc.prevs.data() + rb);
+  const __m256i C = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(vc.corners.data() + rb));
+  // The run's eight pairs in one register: the next vertices its even lanes,
+  // the previous ones its odd lanes. XX: the next vertices twice over; X its
+  // low half (a shuffle: GCC 12's casts and conversions to 256 bits start from
+  // an undefined register, which it reports as maybe uninitialised).
+  const __m512i pair = _mm512_loadu_si512(vc.pairs.data() + rb);
+  const __m512i XX = _mm512_maskz_permutexvar_epi32(
+      0xFFFF, _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 0, 2, 4, 6, 8, 10, 12, 14), pair);
+  using V16 = int32_t __attribute__((vector_size(64)));
+  const __m256i X = __m256i(__builtin_shufflevector(V16(XX), V16(XX), 0, 1, 2, 3, 4, 5, 6, 7));
   uint64_t matrix = 0;
   for (int k = 0; k < 4; ++k) {
     const __m512i rows = _mm512_load_si512(kPairRows.r[k]);
-    const __mmask16 eq = _mm512_cmpeq_epi32_mask(XX, _mm512_maskz_permutexvar_epi32(0xFFFF, rows, PP));
+    const __mmask16 eq = _mm512_cmpeq_epi32_mask(XX, _mm512_maskz_permutexvar_epi32(0xFFFF, rows, pair));
     matrix |= uint64_t(_cvtmask16_u32(eq)) << (16 * k);
   }
   const unsigned keep = (1u << n) - 1;
@@ -350,7 +391,7 @@ __attribute__((target("avx512f,avx512vl,avx2"))) inline bool match_manifold_avx5
 // Runs longer than this are matched in a buffer from the heap.
 struct RunScratch {
   static constexpr int32_t kLocal = 64;
-  int32_t local[2 * kLocal];
+  int32_t local[4 * kLocal];
   std::vector<int32_t> large;
 };
 
@@ -396,23 +437,32 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
   if (n > 8 && n <= 16) manifold = match_manifold_16(vc, rb, n, opposite, order, order_next, first, faces);
   if (manifold) {  // closed fans, as the generic walk below would find
     if (split && faces != n) return false;
-    vertex_corner = vc.corners[rb + first];
+    vertex_corner = vc.corner(rb + first);
     fan = faces;
     return true;
   }
-  if (n > RunScratch::kLocal) scratch.large.resize(2 * size_t(n));
-  int32_t* right = n > RunScratch::kLocal ? scratch.large.data() : scratch.local;
-  int32_t* left = right + n;
-  for (int32_t i = 0; i < n; ++i) right[i] = -1;
+  // right, left, then the run's next and previous vertices (8 at least:
+  // count_edges reads 8).
+  const int32_t m = std::max<int32_t>(n, 8);
+  if (m > RunScratch::kLocal) scratch.large.resize(4 * size_t(m));
+  int32_t* right = m > RunScratch::kLocal ? scratch.large.data() : scratch.local;
+  int32_t* left = right + m;
+  int32_t* nexts = left + m;
+  int32_t* prevs = nexts + m;
+  for (int32_t i = 0; i < m; ++i) {
+    right[i] = -1;
+    nexts[i] = i < n ? vc.next(rb + i) : -1;
+    prevs[i] = i < n ? vc.prev(rb + i) : -1;
+  }
   bool open = false;
   for (int32_t i = 0; i < n; ++i) {
-    const int32_t b = vc.nexts[rb + i], c = prev_corner(vc.corners[rb + i]);
+    const int32_t b = nexts[i], c = prev_corner(vc.corner(rb + i));
     int32_t reverse = 0, same = 0, match = -1;  // b -> a edges; a -> b edges, c's own included
-    count_edges(vc, rb, re, b, reverse, same, match);
+    count_edges(prevs, nexts, n, b, reverse, same, match);
     if (reverse == 1 && same == 1) {
-      opposite[c] = next_corner(vc.corners[match]);
-      left[i] = match - rb;
-      right[match - rb] = i;
+      opposite[c] = next_corner(vc.corner(rb + match));
+      left[i] = match;
+      right[match] = i;
       continue;
     }
     opposite[c] = -1;
@@ -432,8 +482,8 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
   bool closed = false;
   for (int32_t x = first;;) {
     if (order && faces < n) {
-      order[rb + faces] = vc.corners[rb + x];
-      order_next[rb + faces] = vc.nexts[rb + x];
+      order[rb + faces] = vc.corner(rb + x);
+      order_next[rb + faces] = nexts[x];
     }
     ++faces;
     const int32_t s = right[x];
@@ -443,7 +493,7 @@ __attribute__((always_inline)) inline bool match_run(const VertexCorners& vc, in
     x = s;
   }
   if (split && faces != n) return false;
-  vertex_corner = vc.corners[rb + first];
+  vertex_corner = vc.corner(rb + first);
   fan = faces > n ? CornerTable::kUnknownFan : (closed ? faces : -faces);
   return true;
 }
@@ -589,7 +639,7 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
   for (int32_t v = 0; v < nv; ++v) {
     if (!several[v]) continue;
     for (int32_t i = vc.offset[v]; i < vc.offset[v + 1]; ++i) {
-      const int32_t start = vc.corners[i];
+      const int32_t start = vc.corner(i);
       if (visited[start]) continue;
       // Walk left to the start of an open fan (or all the way round).
       int32_t first = start;
