@@ -44,6 +44,17 @@ struct VertexCorners {
   int32_t corner(int64_t i) const { return corners[size_t(i)]; }
   int32_t next(int64_t i) const { return pairs[size_t(i)].next; }
   int32_t prev(int64_t i) const { return pairs[size_t(i)].prev; }
+  // Room for |n| entries, then kPad entries matching no vertex: a run of up
+  // to 8 is then compared 8 at a time without reading past the arrays. The
+  // n entries are left for the fill to write.
+  void size_for(size_t n) {
+    corners.resize(n + kPad);
+    pairs.resize(n + kPad);
+    for (size_t i = n; i < n + kPad; ++i) {
+      corners[i] = -1;
+      pairs[i] = Pair{-1, -1};
+    }
+  }
   // Counting sort, on the calling thread whatever the threads. Split between
   // two threads it was slower than on one (bunny-npm: 17 µs on one thread):
   // by faces, a vertex's run held corners from both threads and its lines
@@ -54,14 +65,7 @@ struct VertexCorners {
   void build(const Array<int32_t>& corner_vertex, int32_t nv) {
     const int32_t nc = static_cast<int32_t>(corner_vertex.size());
     offset.resize(size_t(nv) + 1);
-    // kPad entries after the last run, matching no vertex: a run of up to 8 is
-    // then compared 8 at a time without reading past the array.
-    corners.resize(size_t(nc) + kPad);
-    pairs.resize(size_t(nc) + kPad);
-    for (size_t i = size_t(nc); i < size_t(nc) + kPad; ++i) {
-      corners[i] = -1;
-      pairs[i] = Pair{-1, -1};
-    }
+    size_for(size_t(nc));
     const int32_t* cv = corner_vertex.data();
     // at[v]: the count of v, then where its next corner goes.
     std::vector<int32_t> at(size_t(nv), 0);
@@ -97,12 +101,7 @@ struct VertexCorners {
     offset.assign(size_t(runs) + 1, 0);
     for (int32_t c : at) ++offset[size_t(id[corner_vertex[c]]) + 1];
     for (int32_t r = 0; r < runs; ++r) offset[r + 1] += offset[r];
-    corners.resize(at.size() + kPad);
-    pairs.resize(at.size() + kPad);
-    for (size_t i = at.size(); i < at.size() + kPad; ++i) {
-      corners[i] = -1;
-      pairs[i] = Pair{-1, -1};
-    }
+    size_for(at.size());
     std::vector<int32_t> fill(offset.begin(), offset.end() - 1);
     for (int32_t c : at) {
       const int32_t i = fill[id[corner_vertex[c]]]++;
