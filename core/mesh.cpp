@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <type_traits>
 
 #if defined(__linux__)
@@ -328,6 +329,18 @@ void order_faces_spatially(Mesh& mesh) {
   renumber(mesh.positions);
   for (VertexChannel& ch : mesh.vertex_channels) renumber(ch.data);
   for (int32_t& v : mesh.wedge_vertex) v = id[v];
+}
+
+double face_order_scatter(const Mesh& mesh) {
+  const int32_t nf = mesh.num_faces(), nv = mesh.num_vertices();
+  if (nf < 2 || nv == 0) return 0;
+  const int32_t* cv = mesh.corner_vertex.data();
+  auto smallest = [cv](int32_t f) { return std::min({cv[3 * f], cv[3 * f + 1], cv[3 * f + 2]}); };
+  constexpr int32_t kPairs = 16384;
+  const int32_t step = std::max(1, (nf - 1) / kPairs);
+  int64_t jumps = 0, pairs = 0;
+  for (int32_t f = 1; f < nf; f += step, ++pairs) jumps += std::abs(int64_t(smallest(f)) - smallest(f - 1));
+  return double(jumps) / double(pairs) / double(nv);
 }
 
 void Mesh::materialize() {
