@@ -335,12 +335,17 @@ double face_order_scatter(const Mesh& mesh) {
   const int32_t nf = mesh.num_faces(), nv = mesh.num_vertices();
   if (nf < 2 || nv == 0) return 0;
   const int32_t* cv = mesh.corner_vertex.data();
-  auto smallest = [cv](int32_t f) { return std::min({cv[3 * f], cv[3 * f + 1], cv[3 * f + 2]}); };
   constexpr int32_t kPairs = 16384;
   const int32_t step = std::max(1, (nf - 1) / kPairs);
-  int64_t jumps = 0, pairs = 0;
-  for (int32_t f = 1; f < nf; f += step, ++pairs) jumps += std::abs(int64_t(smallest(f)) - smallest(f - 1));
-  return double(jumps) / double(pairs) / double(nv);
+  int64_t sum = 0, pairs = 0;
+  for (int32_t f = 1; f < nf; f += step, ++pairs) {
+    const int32_t* a = cv + 3 * size_t(f);
+    int32_t nearest = INT32_MAX;
+    for (int i = 0; i < 3; ++i)
+      for (int j = -3; j < 0; ++j) nearest = std::min(nearest, std::abs(a[i] - a[j]));
+    sum += nearest;
+  }
+  return double(sum) / double(pairs) / double(nv);
 }
 
 void Mesh::materialize() {

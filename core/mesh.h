@@ -169,10 +169,13 @@ int64_t drop_degenerate_faces(Mesh& mesh);
 // neighbours the other thread seldom touches (see refine_mesh).
 void order_faces_spatially(Mesh& mesh);
 
-// How scattered the faces' order is: the mean jump of a face's smallest
-// vertex number from the face before's, over the vertex count (0 for faces
-// that walk the surface in small steps; about 1/3 for a random order). At
-// most 16,384 pairs of consecutive faces, spread evenly, are read.
+// How scattered the faces' order is: over pairs of consecutive faces, the
+// mean of the least distance between a vertex number of one and a vertex
+// number of the other, over the vertex count. Faces that walk the surface
+// share a vertex, or a near number, with the face before (an exporter's
+// order, Draco's traversal, a refined mesh's children: at most 0.0017 on the
+// corpus); a scan's faces jump (0.012-0.061 there; a random order about
+// 0.07). At most 16,384 pairs, spread evenly, are read.
 double face_order_scatter(const Mesh& mesh);
 
 }  // namespace iteas

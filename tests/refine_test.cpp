@@ -228,6 +228,32 @@ TEST(Refine, SpatialOrderOnlyRenumbers) {
   EXPECT_GT(reordered, 0);  // the order did change outputs (with the corpus: dozens)
 }
 
+// The sort is for a scattered face order (face_order_scatter) only: faces
+// that already walk the surface keep their order, however large the job;
+// the same faces shuffled are sorted, for one level from 49,152 faces.
+TEST(Refine, SpatialOrderOnlyForScatteredFaces) {
+  auto shuffled = [](Mesh m) {
+    std::vector<std::array<int32_t, 3>> f(static_cast<size_t>(m.num_faces()));
+    std::memcpy(f.data(), m.corner_vertex.data(), f.size() * sizeof(f[0]));
+    std::shuffle(f.begin(), f.end(), std::mt19937(1));
+    std::memcpy(m.corner_vertex.data(), f.data(), f.size() * sizeof(f[0]));
+    return m;
+  };
+  const Mesh small = test::icosphere(5), large = test::icosphere(6);  // a parent's children together
+  struct Job { const Mesh* mesh; int levels; bool sorted_if_scattered; };
+  for (const Job& job : {Job{&large, 1, true}, Job{&small, 2, true}, Job{&small, 1, false}}) {
+    SCOPED_TRACE(std::to_string(job.mesh->num_faces()) + " faces, levels " + std::to_string(job.levels));
+    const RefineOptions o = opts(Mode::kUniform, job.levels);
+    EXPECT_LT(face_order_scatter(*job.mesh), 0.002);
+    EXPECT_TRUE(same_mesh(refined(*job.mesh, o), refined(*job.mesh, o, nullptr, false, false)));
+    const Mesh scattered = shuffled(*job.mesh);
+    EXPECT_GT(face_order_scatter(scattered), 0.02);
+    const Mesh ordered = refined(scattered, o), plain = refined(scattered, o, nullptr, false, false);
+    EXPECT_EQ(!same_mesh(ordered, plain), job.sorted_if_scattered);
+    EXPECT_EQ(sorted_faces(ordered), sorted_faces(plain));
+  }
+}
+
 TEST(Refine, PlanarMeshStaysPlanar) {
   const double o[3] = {1, 2, 3}, u[3] = {2, 0.5, 1}, v[3] = {-0.5, 1.5, 0.25};
   const Mesh grid = test::planar_grid(12, o, u, v);
