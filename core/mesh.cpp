@@ -259,7 +259,7 @@ struct Spread {
 constexpr Spread kSpread;
 }  // namespace
 
-void order_faces_spatially(Mesh& mesh) {
+void order_faces_spatially(Mesh& mesh, int threads) {
   const int32_t nf = mesh.num_faces(), nv = mesh.num_vertices();
   if (nf < 2 || nv == 0) return;
   // A grid of 2^bits cells a side with about as many cells as faces, at
@@ -267,6 +267,7 @@ void order_faces_spatially(Mesh& mesh) {
   // a small part of them, and the faces of a cell stay in their order.
   int bits = 2;
   while (bits < 5 && (int64_t(1) << (3 * bits)) < nf) ++bits;
+  const size_t cells = size_t(1) << (3 * bits);
   const Aabb box = bounding_box(mesh);
   const float top = float((1 << bits) - 1);
   float lo[3], scale[3];
@@ -275,55 +276,137 @@ void order_faces_spatially(Mesh& mesh) {
     const float extent = box.hi[k] - box.lo[k];
     scale[k] = extent > 0.0f ? float(1 << bits) / extent : 0.0f;  // a flat box: one layer of cells
   }
+  // The work is cut into parts, one a thread, of at least 8,192 faces: part
+  // p counts and places the p-th range of the vertices and of the faces, and
+  // the places come from counts summed cell by cell, then part by part, so
+  // that every vertex and face lands where one part would put it.
+  const int parts = std::max(1, std::min<int>(resolve_threads(threads), nf / 8192));
+  const auto first = [](int64_t n, int64_t p, int parts) { return n * p / parts; };
   // Each vertex's cell; a face goes to its first vertex's (faces are small
   // beside a cell, and a vertex is cheaper than a centroid).
-  std::vector<uint32_t> cell(static_cast<size_t>(nv));
-  const float* pos = mesh.positions.data();
-  for (int32_t v = 0; v < nv; ++v) {
-    uint32_t code = 0;
-    for (int k = 0; k < 3; ++k) {
-      const float t = (pos[3 * size_t(v) + k] - lo[k]) * scale[k];
-      // Comparisons that are false for NaN: such a vertex goes to cell 0.
-      const uint32_t q = t > 0.0f ? (t < top ? uint32_t(t) : uint32_t(top)) : 0u;
-      code |= kSpread.bits[q] << k;
-    }
-    cell[v] = code;
+  Array<uint32_t> cell(static_cast<size_t>(nv));
+  {
+    const float* pos = mesh.positions.data();
+    uint32_t* out = cell.data();
+    parallel_for(nv, parts, [=](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v) {
+        uint32_t code = 0;
+        for (int k = 0; k < 3; ++k) {
+          const float t = (pos[3 * size_t(v) + k] - lo[k]) * scale[k];
+          // Comparisons that are false for NaN: such a vertex goes to cell 0.
+          const uint32_t q = t > 0.0f ? (t < top ? uint32_t(t) : uint32_t(top)) : 0u;
+          code |= kSpread.bits[q] << k;
+        }
+        out[v] = code;
+      }
+    });
   }
+  // Per part and cell, the number of the part's vertices and faces there,
+  // then where the next of them goes (cell by cell, part by part).
+  Array<int32_t> vertex_at(size_t(parts) * cells), face_at(size_t(parts) * cells);
+  const uint32_t* cl = cell.data();
   const int32_t* cv = mesh.corner_vertex.data();
-  std::vector<int32_t> at((size_t(1) << (3 * bits)) + 1, 0);  // counts, then where a cell's next face goes
-  for (int32_t f = 0; f < nf; ++f) ++at[cell[cv[3 * size_t(f)]] + 1];
-  for (size_t c = 1; c < at.size(); ++c) at[c] += at[c - 1];
+  int32_t* va = vertex_at.data();
+  int32_t* fa = face_at.data();
+  parallel_for_chunks(parts, parts, [=](int64_t pb, int64_t pe) {
+    for (int64_t p = pb; p < pe; ++p) {
+      int32_t* vh = va + size_t(p) * cells;
+      int32_t* fh = fa + size_t(p) * cells;
+      std::fill(vh, vh + cells, 0);
+      std::fill(fh, fh + cells, 0);
+      for (int64_t v = first(nv, p, parts), e = first(nv, p + 1, parts); v < e; ++v) ++vh[cl[v]];
+      for (int64_t f = first(nf, p, parts), e = first(nf, p + 1, parts); f < e; ++f) ++fh[cl[cv[3 * f]]];
+    }
+  });
+  if (parts == 1) {
+    int32_t v_run = 0, f_run = 0;
+    for (size_t c = 0; c < cells; ++c) {
+      const int32_t nvc = va[c], nfc = fa[c];
+      va[c] = v_run;
+      fa[c] = f_run;
+      v_run += nvc;
+      f_run += nfc;
+    }
+  } else {
+    // The cells cut into as many ranges: each range's totals, their sums in
+    // range order, then each range's places from its sum.
+    std::vector<int64_t> v_sum(size_t(parts) + 1, 0), f_sum(size_t(parts) + 1, 0);
+    int64_t* vs = v_sum.data();
+    int64_t* fs = f_sum.data();
+    parallel_for_chunks(parts, parts, [=](int64_t rb, int64_t re) {
+      for (int64_t r = rb; r < re; ++r) {
+        int64_t nvr = 0, nfr = 0;
+        for (size_t p = 0; p < size_t(parts); ++p)
+          for (size_t c = first(cells, r, parts), e = first(cells, r + 1, parts); c < e; ++c) {
+            nvr += va[p * cells + c];
+            nfr += fa[p * cells + c];
+          }
+        vs[r + 1] = nvr;
+        fs[r + 1] = nfr;
+      }
+    });
+    for (int r = 0; r < parts; ++r) {
+      vs[r + 1] += vs[r];
+      fs[r + 1] += fs[r];
+    }
+    parallel_for_chunks(parts, parts, [=](int64_t rb, int64_t re) {
+      for (int64_t r = rb; r < re; ++r) {
+        int32_t v_run = int32_t(vs[r]), f_run = int32_t(fs[r]);
+        for (size_t c = first(cells, r, parts), e = first(cells, r + 1, parts); c < e; ++c)
+          for (size_t p = 0; p < size_t(parts); ++p) {
+            const int32_t nvc = va[p * cells + c], nfc = fa[p * cells + c];
+            va[p * cells + c] = v_run;
+            fa[p * cells + c] = f_run;
+            v_run += nvc;
+            f_run += nfc;
+          }
+      }
+    });
+  }
+  // Vertices numbered by cell (a cell's vertices in their order), then the
+  // faces placed by their first vertex's cell with their corners renumbered.
+  Array<int32_t> id(static_cast<size_t>(nv));
   Array<int32_t> corners(3 * size_t(nf)), wedges(mesh.has_wedges() ? 3 * size_t(nf) : 0);
   std::vector<int32_t> groups(mesh.face_group.size());
-  const int32_t* cw = mesh.corner_wedge.data();
-  for (int32_t f = 0; f < nf; ++f) {
-    const size_t from = 3 * size_t(f), i = size_t(at[cell[cv[from]]]++);
-    for (int k = 0; k < 3; ++k) corners[3 * i + k] = cv[from + k];
-    if (cw)
-      for (int k = 0; k < 3; ++k) wedges[3 * i + k] = cw[from + k];
-    if (!groups.empty()) groups[i] = mesh.face_group[f];
+  {
+    int32_t* to = id.data();
+    parallel_for_chunks(parts, parts, [=](int64_t pb, int64_t pe) {
+      for (int64_t p = pb; p < pe; ++p) {
+        int32_t* vh = va + size_t(p) * cells;
+        for (int64_t v = first(nv, p, parts), e = first(nv, p + 1, parts); v < e; ++v) to[v] = vh[cl[v]]++;
+      }
+    });
+    const int32_t* cw = mesh.has_wedges() ? mesh.corner_wedge.data() : nullptr;
+    const int32_t* fg = groups.empty() ? nullptr : mesh.face_group.data();
+    int32_t* co = corners.data();
+    int32_t* wo = wedges.data();
+    int32_t* go = groups.data();
+    parallel_for_chunks(parts, parts, [=](int64_t pb, int64_t pe) {
+      for (int64_t p = pb; p < pe; ++p) {
+        int32_t* fh = fa + size_t(p) * cells;
+        for (int64_t f = first(nf, p, parts), e = first(nf, p + 1, parts); f < e; ++f) {
+          const size_t from = 3 * size_t(f), i = size_t(fh[cl[cv[from]]]++);
+          for (int k = 0; k < 3; ++k) co[3 * i + k] = to[cv[from + k]];
+          if (cw)
+            for (int k = 0; k < 3; ++k) wo[3 * i + k] = cw[from + k];
+          if (fg) go[i] = fg[f];
+        }
+      }
+    });
   }
   mesh.corner_vertex.swap(corners);
   mesh.corner_wedge.swap(wedges);
   mesh.face_group.swap(groups);
-
-  // Vertices numbered in order of first use by the faces so ordered (as the
-  // readers number them in the file's order): the per-vertex arrays are then
-  // in spatial order too. Vertices no face uses follow, in their order.
-  std::vector<int32_t>& id = at;  // the cells' counts are done with
-  id.assign(static_cast<size_t>(nv), -1);
-  int32_t next = 0;
-  for (int32_t& v : mesh.corner_vertex) {
-    if (id[v] < 0) id[v] = next++;
-    v = id[v];
-  }
-  for (int32_t v = 0; v < nv; ++v)
-    if (id[v] < 0) id[v] = next++;
   // Three floats per vertex, moved to the vertex's new number.
   auto renumber = [&](auto& data) {
     std::remove_reference_t<decltype(data)> moved(data.size());
-    for (int32_t v = 0; v < nv; ++v)
-      for (int k = 0; k < 3; ++k) moved[3 * size_t(id[v]) + k] = data[3 * size_t(v) + k];
+    const int32_t* to = id.data();
+    const float* from = data.data();
+    float* out = moved.data();
+    parallel_for(nv, parts, [=](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v)
+        for (int k = 0; k < 3; ++k) out[3 * size_t(to[v]) + k] = from[3 * size_t(v) + k];
+    });
     data.swap(moved);
   };
   renumber(mesh.positions);

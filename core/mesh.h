@@ -162,12 +162,14 @@ int64_t drop_degenerate_faces(Mesh& mesh);
 // Puts the faces (with their corners' wedges and their groups) in the order
 // of a Z-order (Morton) curve through a grid over the bounding box, by the
 // cell of each face's first vertex (faces of one cell keep their relative
-// order), then numbers the vertices in order of first use (positions and
-// per-vertex channels move with them; vertices no face uses come last).
-// Wedges keep their numbers. A thread's share of a loop over faces or
-// vertices is then one region of the surface, whose vertices, edges and
-// neighbours the other thread seldom touches (see refine_mesh).
-void order_faces_spatially(Mesh& mesh);
+// order), and numbers the vertices in the same order, by their own cells (a
+// cell's vertices keep their relative order; positions and per-vertex
+// channels move with them). Wedges keep their numbers. A thread's share of
+// a loop over faces or vertices is then one region of the surface, whose
+// vertices, edges and neighbours the other thread seldom touches (see
+// refine_mesh). Runs on up to |threads| threads (<= 0: all cores); the
+// result is the same on any number.
+void order_faces_spatially(Mesh& mesh, int threads = 1);
 
 // How scattered the faces' order is: over pairs of consecutive faces, the
 // mean of the least distance between a vertex number of one and a vertex

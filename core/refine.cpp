@@ -1690,7 +1690,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (hooks.spatial_order && o.mode == Mode::kUniform && o.levels >= 1 && last_level_faces >= kSmallStepFaces &&
       (o.levels >= 2 || m.num_faces() >= kSortOneLevelFaces) && int64_t(m.num_faces()) * 4 <= o.max_triangles &&
       face_order_scatter(m) >= kScatteredOrder)
-    order_faces_spatially(m);
+    order_faces_spatially(m, s.threads);
 
   const double t0 = now();
   stats.triangles_in = m.num_faces();
