@@ -199,8 +199,8 @@ TEST(Refine, SameOutputForOneAndTwoThreads) {
   }
 }
 
-// A large uniform job puts faces in spatial order and numbers vertices by
-// first use (order_faces_spatially), for the threads' sake: the output must
+// A large uniform job puts faces and vertices in spatial order
+// (order_faces_spatially), for the threads' sake: the output must
 // be the same triangles, bit for bit, as in the input's order, and the same
 // for one and two threads.
 TEST(Refine, SpatialOrderOnlyRenumbers) {
@@ -251,6 +251,27 @@ TEST(Refine, SpatialOrderOnlyForScatteredFaces) {
     const Mesh ordered = refined(scattered, o), plain = refined(scattered, o, nullptr, false, false);
     EXPECT_EQ(!same_mesh(ordered, plain), job.sorted_if_scattered);
     EXPECT_EQ(sorted_faces(ordered), sorted_faces(plain));
+  }
+}
+
+// The sort runs in parts on the threads it is given (from 8,192 faces a
+// part): the same faces and vertices in the same order on any number, the
+// same triangles as before it, faces in cell order.
+TEST(Refine, SpatialOrderIsTheSameOnAnyThreads) {
+  Mesh input = test::icosphere(6);
+  std::vector<std::array<int32_t, 3>> f(static_cast<size_t>(input.num_faces()));
+  std::memcpy(f.data(), input.corner_vertex.data(), f.size() * sizeof(f[0]));
+  std::shuffle(f.begin(), f.end(), std::mt19937(2));
+  std::memcpy(input.corner_vertex.data(), f.data(), f.size() * sizeof(f[0]));
+  Mesh one = input;
+  order_faces_spatially(one, 1);
+  EXPECT_EQ(sorted_faces(one), sorted_faces(input));
+  EXPECT_EQ(sorted_points(one, one.num_vertices()), sorted_points(input, input.num_vertices()));
+  EXPECT_LT(face_order_scatter(one), 0.005);
+  for (int threads : {2, 3, 4}) {
+    Mesh many = input;
+    order_faces_spatially(many, threads);
+    EXPECT_TRUE(same_mesh(many, one)) << threads << " threads";
   }
 }
 
