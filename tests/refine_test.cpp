@@ -228,17 +228,19 @@ TEST(Refine, SpatialOrderOnlyRenumbers) {
   EXPECT_GT(reordered, 0);  // the order did change outputs (with the corpus: dozens)
 }
 
+// |m| with its faces in a random order (each face's corners as they were).
+Mesh shuffled_faces(Mesh m, unsigned seed) {
+  std::vector<std::array<int32_t, 3>> f(static_cast<size_t>(m.num_faces()));
+  std::memcpy(f.data(), m.corner_vertex.data(), f.size() * sizeof(f[0]));
+  std::shuffle(f.begin(), f.end(), std::mt19937(seed));
+  std::memcpy(m.corner_vertex.data(), f.data(), f.size() * sizeof(f[0]));
+  return m;
+}
+
 // The sort is for a scattered face order (face_order_scatter) only: faces
 // that already walk the surface keep their order, however large the job;
 // the same faces shuffled are sorted, for one level from 49,152 faces.
 TEST(Refine, SpatialOrderOnlyForScatteredFaces) {
-  auto shuffled = [](Mesh m) {
-    std::vector<std::array<int32_t, 3>> f(static_cast<size_t>(m.num_faces()));
-    std::memcpy(f.data(), m.corner_vertex.data(), f.size() * sizeof(f[0]));
-    std::shuffle(f.begin(), f.end(), std::mt19937(1));
-    std::memcpy(m.corner_vertex.data(), f.data(), f.size() * sizeof(f[0]));
-    return m;
-  };
   const Mesh small = test::icosphere(5), large = test::icosphere(6);  // a parent's children together
   struct Job { const Mesh* mesh; int levels; bool sorted_if_scattered; };
   for (const Job& job : {Job{&large, 1, true}, Job{&small, 2, true}, Job{&small, 1, false}}) {
@@ -246,7 +248,7 @@ TEST(Refine, SpatialOrderOnlyForScatteredFaces) {
     const RefineOptions o = opts(Mode::kUniform, job.levels);
     EXPECT_LT(face_order_scatter(*job.mesh), 0.002);
     EXPECT_TRUE(same_mesh(refined(*job.mesh, o), refined(*job.mesh, o, nullptr, false, false)));
-    const Mesh scattered = shuffled(*job.mesh);
+    const Mesh scattered = shuffled_faces(*job.mesh, 1);
     EXPECT_GT(face_order_scatter(scattered), 0.02);
     const Mesh ordered = refined(scattered, o), plain = refined(scattered, o, nullptr, false, false);
     EXPECT_EQ(!same_mesh(ordered, plain), job.sorted_if_scattered);
@@ -256,13 +258,10 @@ TEST(Refine, SpatialOrderOnlyForScatteredFaces) {
 
 // The sort runs in parts on the threads it is given (from 8,192 faces a
 // part): the same faces and vertices in the same order on any number, the
-// same triangles as before it, faces in cell order.
+// same triangles and points as before it, in an order that walks the
+// surface.
 TEST(Refine, SpatialOrderIsTheSameOnAnyThreads) {
-  Mesh input = test::icosphere(6);
-  std::vector<std::array<int32_t, 3>> f(static_cast<size_t>(input.num_faces()));
-  std::memcpy(f.data(), input.corner_vertex.data(), f.size() * sizeof(f[0]));
-  std::shuffle(f.begin(), f.end(), std::mt19937(2));
-  std::memcpy(input.corner_vertex.data(), f.data(), f.size() * sizeof(f[0]));
+  const Mesh input = shuffled_faces(test::icosphere(6), 2);
   Mesh one = input;
   order_faces_spatially(one, 1);
   EXPECT_EQ(sorted_faces(one), sorted_faces(input));
