@@ -318,21 +318,13 @@ void order_faces_spatially(Mesh& mesh, int threads) {
       for (int64_t f = first(nf, p, parts), e = first(nf, p + 1, parts); f < e; ++f) ++fh[cl[cv[3 * f]]];
     }
   });
-  if (parts == 1) {
-    int32_t v_run = 0, f_run = 0;
-    for (size_t c = 0; c < cells; ++c) {
-      const int32_t nvc = va[c], nfc = fa[c];
-      va[c] = v_run;
-      fa[c] = f_run;
-      v_run += nvc;
-      f_run += nfc;
-    }
-  } else {
-    // The cells cut into as many ranges: each range's totals, their sums in
-    // range order, then each range's places from its sum.
-    std::vector<int64_t> v_sum(size_t(parts) + 1, 0), f_sum(size_t(parts) + 1, 0);
-    int64_t* vs = v_sum.data();
-    int64_t* fs = f_sum.data();
+  // The cells cut into as many ranges as parts: each range's totals (none
+  // needed for the first), their sums in range order, then each range's
+  // places from its sum.
+  std::vector<int64_t> v_sum(size_t(parts) + 1, 0), f_sum(size_t(parts) + 1, 0);
+  int64_t* vs = v_sum.data();
+  int64_t* fs = f_sum.data();
+  if (parts > 1) {
     parallel_for_chunks(parts, parts, [=](int64_t rb, int64_t re) {
       for (int64_t r = rb; r < re; ++r) {
         int64_t nvr = 0, nfr = 0;
@@ -349,11 +341,15 @@ void order_faces_spatially(Mesh& mesh, int threads) {
       vs[r + 1] += vs[r];
       fs[r + 1] += fs[r];
     }
+  }
+  // (One part, the usual case, known at compile time: the loop over parts
+  // then goes, and the pass runs as fast as a plain prefix sum.)
+  auto place = [&](auto n_parts) {
     parallel_for_chunks(parts, parts, [=](int64_t rb, int64_t re) {
       for (int64_t r = rb; r < re; ++r) {
         int32_t v_run = int32_t(vs[r]), f_run = int32_t(fs[r]);
         for (size_t c = first(cells, r, parts), e = first(cells, r + 1, parts); c < e; ++c)
-          for (size_t p = 0; p < size_t(parts); ++p) {
+          for (size_t p = 0; p < size_t(n_parts); ++p) {
             const int32_t nvc = va[p * cells + c], nfc = fa[p * cells + c];
             va[p * cells + c] = v_run;
             fa[p * cells + c] = f_run;
@@ -362,7 +358,9 @@ void order_faces_spatially(Mesh& mesh, int threads) {
           }
       }
     });
-  }
+  };
+  if (parts == 1) place(std::integral_constant<int, 1>());
+  else place(parts);
   // Vertices numbered by cell (a cell's vertices in their order), then the
   // faces placed by their first vertex's cell with their corners renumbered.
   Array<int32_t> id(static_cast<size_t>(nv));
