@@ -634,6 +634,62 @@ __attribute__((target("avx2"))) void tally_avx2(const float* t, int64_t n, const
 }
 #endif
 
+#if ITEAS_X86_FEATURES
+namespace {
+// summarize_angles' edges of corners [c, end), sixteen corners at a time
+// while |near| and |others| have room for sixteen more. An interior edge at
+// its first corner c (opp[c] > c) whose other face lies before |f1| (a face
+// of the block [f0, f1)) is listed as the offsets of its faces' normals in
+// the block's cache: 3 (c / 3 - f0) in |near_a|, 3 (opp[c] / 3 - f0) in
+// |near_b|. One whose other face lies at or after f1 goes to |others| as its
+// corner. Returns the first corner not looked at.
+__attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t* opp, int32_t c, int32_t end,
+                                                                   int32_t f0, int32_t f1, int32_t* near_a,
+                                                                   int32_t* near_b, int& n_near, int near_room,
+                                                                   int32_t* others, int& n_others, int others_room) {
+  const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  const __m512i past = _mm512_set1_epi32(3 * f1), first = _mm512_set1_epi32(f0);
+  for (; c + 16 <= end && n_near + 16 <= near_room && n_others + 16 <= others_room; c += 16) {
+    const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
+    const __m512i d = _mm512_loadu_si512(opp + c);
+    const __mmask16 edge = _mm512_cmpgt_epi32_mask(d, at);  // (a boundary's -1 is not)
+    const __mmask16 near = _mm512_mask_cmplt_epi32_mask(edge, d, past);
+    const __mmask16 later = edge & __mmask16(~near);
+    if (near) {
+      const __m512i fa = _mm512_sub_epi32(div3_epi32_avx512(at), first),
+                    fb = _mm512_sub_epi32(div3_epi32_avx512(d), first);
+      _mm512_mask_compressstoreu_epi32(near_a + n_near, near, _mm512_add_epi32(fa, _mm512_add_epi32(fa, fa)));
+      _mm512_mask_compressstoreu_epi32(near_b + n_near, near, _mm512_add_epi32(fb, _mm512_add_epi32(fb, fb)));
+      n_near += __builtin_popcount(near);
+    }
+    if (later) {
+      _mm512_mask_compressstoreu_epi32(others + n_others, later, at);
+      n_others += __builtin_popcount(later);
+    }
+  }
+  return c;
+}
+
+// The listed edges' normals, gathered from the block's cache into the six
+// arrays of summarize_angles (the first face's x, y, z, then the other's).
+__attribute__((target("avx512f"))) void gather_block_normals_avx512(const float* normals, const int32_t* near_a,
+                                                                    const int32_t* near_b, int n,
+                                                                    float* const* soa) {
+  for (int i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (n - i)) - 1);
+    const __m512i a = _mm512_maskz_loadu_epi32(m, near_a + i), b = _mm512_maskz_loadu_epi32(m, near_b + i);
+    for (int k = 0; k < 3; ++k) {
+      const __m512i kk = _mm512_set1_epi32(k);
+      _mm512_mask_storeu_ps(soa[k] + i, m,
+                            _mm512_mask_i32gather_ps(_mm512_setzero_ps(), m, _mm512_add_epi32(a, kk), normals, 4));
+      _mm512_mask_storeu_ps(soa[3 + k] + i, m,
+                            _mm512_mask_i32gather_ps(_mm512_setzero_ps(), m, _mm512_add_epi32(b, kk), normals, 4));
+    }
+  }
+}
+}  // namespace
+#endif
+
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude, int threads, QualitySummary* quality) {
   // The sum of the angles is kept exactly (AngleTally). Counts, the
@@ -659,6 +715,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   float min_angle = 180.0f;
 #if ITEAS_X86_FEATURES
   const bool wide = cpu_has(CpuFeature::kAvx2);
+  const bool wide512 = cpu_has(CpuFeature::kAvx512);
   const TallyBounds bounds(threshold, exclude);
 #endif
   parallel_for(nf, threads, [&](int64_t b, int64_t e) {
@@ -745,9 +802,8 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       std::vector<Waiting>& here = waiting[size_t((f0 - b) / kFaces)];
       for (const Waiting& w : here) push(w.n, normals + 3 * size_t(w.face - f0));
       std::vector<Waiting>().swap(here);
-      for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
-        const int32_t d = opp[c];
-        if (d < c) continue;
+      // The edge at corner c, its first (d = opp[c] > c).
+      auto edge = [&](int32_t c, int32_t d) {
         const int64_t g = d / 3;
         const float* n1 = normals + 3 * size_t(c / 3 - f0);
         if (g < f1) {
@@ -759,6 +815,43 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
           face_normals_or_nan(mesh, g, g + 1, far);
           push(n1, far);
         }
+      };
+      int32_t c = int32_t(3 * f0);
+      const int32_t c_end = int32_t(3 * f1);
+#if ITEAS_X86_FEATURES
+      if (wide512) {
+        // Sixteen corners at a time: the edges whose faces are both in the
+        // block listed by their normals' offsets, their normals gathered a
+        // list at a time; the others (the second face in a later block or
+        // piece) one at a time, as below. The tally does not depend on the
+        // order of the edges. (One at a time, whether a corner is its edge's
+        // first and where its other face lies follow no pattern: bunny-npm
+        // uniform level 1 with the statistics, one thread, 0.551 -> 0.499 ms.)
+        int32_t near_a[kBlock], near_b[kBlock], others[256];
+        int n_near = 0, n_others = 0;
+        for (;;) {
+          c = list_block_edges_avx512(opp, c, c_end, int32_t(f0), int32_t(f1), near_a, near_b, n_near, kBlock,
+                                      others, n_others, 256);
+          const bool last = c + 16 > c_end;
+          if (last || n_others + 16 > 256) {
+            for (int i = 0; i < n_others; ++i) edge(others[i], opp[others[i]]);
+            n_others = 0;
+          }
+          if (last || n_near + 16 > kBlock) {
+            flush();  // the pushed edges first: the gathered take the arrays
+            gather_block_normals_avx512(normals, near_a, near_b, n_near, soa);
+            n = n_near;
+            flush();
+            n_near = 0;
+          }
+          if (last) break;
+        }
+      }
+#endif
+      for (; c < c_end; ++c) {
+        const int32_t d = opp[c];
+        if (d < c) continue;
+        edge(c, d);
       }
       flush();
     }

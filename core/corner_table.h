@@ -48,6 +48,17 @@ __attribute__((target("avx2"), always_inline)) inline void next_prev_corners_avx
   prev = _mm256_add_epi32(_mm256_sub_epi32(c, one),
                           _mm256_and_si256(_mm256_cmpeq_epi32(r3, _mm256_setzero_si256()), _mm256_set1_epi32(3)));
 }
+
+// floor(v / 3) of sixteen lanes 0 <= v < 2^31 in an AVX-512 register, from the
+// high half of v * 0xAAAAAAAB (>> 33), even and odd lanes. (The masked forms:
+// GCC 12 warns of the plain ones' undefined pass-through operand.)
+__attribute__((target("avx512f"), always_inline)) inline __m512i div3_epi32_avx512(const __m512i& v) {
+  const __m512i magic = _mm512_set1_epi32(int32_t(0xAAAAAAABu));
+  const __m512i q_even = _mm512_maskz_srli_epi64(0xFF, _mm512_maskz_mul_epu32(0xFF, v, magic), 33);
+  const __m512i q_odd =
+      _mm512_maskz_srli_epi64(0xFF, _mm512_maskz_mul_epu32(0xFF, _mm512_maskz_srli_epi64(0xFF, v, 32), magic), 33);
+  return _mm512_mask_blend_epi32(0xAAAA, q_even, _mm512_maskz_slli_epi64(0xFF, q_odd, 32));
+}
 #endif
 
 // Uniform 1:4 split, children of face f numbered 4f+j (child j < 3 keeps the

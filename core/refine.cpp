@@ -346,17 +346,13 @@ __attribute__((target("avx512f"))) int64_t child_opposites_avx512(const int32_t*
   // 3 kPrev[l] + l and 3 kNext[l] + l for l = d mod 3 (uniform_level's tables).
   const __m512i first_half = _mm512_setr_epi32(6, 1, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
   const __m512i second_half = _mm512_setr_epi32(3, 7, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
-  const __m512i magic = _mm512_set1_epi32(int32_t(0xAAAAAAABu)), zero = _mm512_setzero_si512();
+  const __m512i zero = _mm512_setzero_si512();
   const __m512i minus_one = _mm512_set1_epi32(-1);
   int64_t f = b;
   for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
     const __m512i d = _mm512_loadu_si512(opp + 3 * f);
     const __mmask16 boundary = _mm512_cmplt_epi32_mask(d, zero);
-    // d / 3 from the high half of d * 0xAAAAAAAB (>> 33), even and odd lanes.
-    const __m512i q_even = _mm512_maskz_srli_epi64(0xFF, _mm512_maskz_mul_epu32(0xFF, d, magic), 33);
-    const __m512i q_odd = _mm512_maskz_srli_epi64(
-        0xFF, _mm512_maskz_mul_epu32(0xFF, _mm512_maskz_srli_epi64(0xFF, d, 32), magic), 33);
-    const __m512i q = _mm512_mask_blend_epi32(0xAAAA, q_even, _mm512_maskz_slli_epi64(0xFF, q_odd, 32));
+    const __m512i q = div3_epi32_avx512(d);  // (at a boundary's -1, not used)
     const __m512i l = _mm512_sub_epi32(d, _mm512_mullo_epi32(q, _mm512_set1_epi32(3)));
     const __m512i g12 = _mm512_mullo_epi32(q, _mm512_set1_epi32(12));
     const __m512i a = _mm512_mask_mov_epi32(

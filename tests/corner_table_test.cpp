@@ -664,6 +664,53 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 8u : 26u);
 }
 
+// Where the processor has AVX-512, the summary lists a block's edges sixteen
+// corners at a time and gathers their normals; capped at AVX2 it takes them
+// one corner at a time. The same summary either way (and the same quality),
+// on one to three threads, for the corpus and the same meshes subdivided
+// (several 8192-face blocks, edges waiting for a later block or crossing to
+// another thread's piece).
+TEST(Angles, SummaryIsTheSameWithTheEdgesListedSixteenAtATime) {
+#if ITEAS_X86_FEATURES
+  if (!cpu_has(CpuFeature::kAvx512)) GTEST_SKIP() << "no AVX-512 here";
+  std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
+  for (size_t i = 0, n = meshes.size(); i < n && i < 6; ++i) {
+    Mesh m = meshes[i].mesh;
+    RefineOptions o;
+    o.mode = Mode::kUniform;
+    o.levels = 2;
+    RefineHooks h;
+    h.statistics = false;
+    RefineStats st;
+    refine_mesh(m, o, h, &st);
+    meshes.push_back({meshes[i].name + " (uniform level 2)", m});
+  }
+  for (const test::NamedMesh& c : meshes) {
+    Mesh m = c.mesh;
+    CornerTable ct;
+    ct.build(m, false, 1);
+    for (int threads : {1, 2, 3}) {
+      const std::string at = c.name + ", " + std::to_string(threads) + " threads";
+      QualitySummary q_listed, q_one;
+      const AngleSummary listed = summarize_angles(m, ct, nullptr, 20.0, 0, threads);
+      const AngleSummary listed_q = summarize_angles(m, ct, nullptr, 20.0, 0, threads, &q_listed);
+      cpu_feature_cap() = int(CpuFeature::kAvx2);
+      const AngleSummary one = summarize_angles(m, ct, nullptr, 20.0, 0, threads);
+      const AngleSummary one_q = summarize_angles(m, ct, nullptr, 20.0, 0, threads, &q_one);
+      cpu_feature_cap() = int(CpuFeature::kAvx512);
+      expect_same_summary(listed, one, at);
+      expect_same_summary(listed_q, one_q, at + ", with the quality");
+      EXPECT_EQ(q_listed.min_angle, q_one.min_angle) << at;
+      EXPECT_EQ(q_listed.p1_angle, q_one.p1_angle) << at;
+      EXPECT_GT(listed.edges, 0) << at;
+    }
+  }
+  EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 8u : 26u);
+#else
+  GTEST_SKIP() << "not an x86-64 build";
+#endif
+}
+
 // The statistics gather counts, a maximum and an exact sum, so they do not
 // depend on how the faces are split over threads nor on the order of the
 // faces: the same mesh with its faces in reverse order (every edge is then
