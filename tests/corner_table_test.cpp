@@ -619,12 +619,10 @@ void expect_same_summary(const AngleSummary& a, const AngleSummary& b, const std
   EXPECT_EQ(a.histogram, b.histogram) << at;
 }
 
-// The summary asked for the triangle quality as well gathers each face's
-// points once for its normals and the quality: the same summary as without,
-// and triangle_quality's result, on one to three threads; with angles given
-// (no normals computed) the quality is left alone. Subdivided meshes too, for
-// several 8192-face blocks and edges waiting for a later block.
-TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
+// The corpus's meshes of 500 to 60,000 faces, and the first six of them
+// subdivided twice (several 8192-face blocks for the angle summary, edges
+// waiting for a later block or crossing to another thread's piece).
+std::vector<test::NamedMesh> summary_meshes() {
   std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
   for (size_t i = 0, n = meshes.size(); i < n && i < 6; ++i) {
     Mesh m = meshes[i].mesh;
@@ -637,6 +635,16 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
     refine_mesh(m, o, h, &st);
     meshes.push_back({meshes[i].name + " (uniform level 2)", m});
   }
+  return meshes;
+}
+
+// The summary asked for the triangle quality as well gathers each face's
+// points once for its normals and the quality: the same summary as without,
+// and triangle_quality's result, on one to three threads; with angles given
+// (no normals computed) the quality is left alone. Subdivided meshes too, for
+// several 8192-face blocks and edges waiting for a later block.
+TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
+  const std::vector<test::NamedMesh> meshes = summary_meshes();
   for (const test::NamedMesh& c : meshes) {
     const Mesh& m = c.mesh;
     CornerTable ct;
@@ -673,18 +681,7 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
 TEST(Angles, SummaryIsTheSameWithTheEdgesListedSixteenAtATime) {
 #if ITEAS_X86_FEATURES
   if (!cpu_has(CpuFeature::kAvx512)) GTEST_SKIP() << "no AVX-512 here";
-  std::vector<test::NamedMesh> meshes = test::valid_meshes(60000, 500);
-  for (size_t i = 0, n = meshes.size(); i < n && i < 6; ++i) {
-    Mesh m = meshes[i].mesh;
-    RefineOptions o;
-    o.mode = Mode::kUniform;
-    o.levels = 2;
-    RefineHooks h;
-    h.statistics = false;
-    RefineStats st;
-    refine_mesh(m, o, h, &st);
-    meshes.push_back({meshes[i].name + " (uniform level 2)", m});
-  }
+  const std::vector<test::NamedMesh> meshes = summary_meshes();
   for (const test::NamedMesh& c : meshes) {
     Mesh m = c.mesh;
     CornerTable ct;
