@@ -177,7 +177,8 @@ void order_faces_spatially(Mesh& mesh, int threads = 1);
 // share a vertex, or a near number, with the face before (an exporter's
 // order, Draco's traversal, a refined mesh's children: at most 0.0017 on the
 // corpus); a scan's faces jump (0.012-0.061 there; a random order about
-// 0.07). At most 16,384 pairs, spread evenly, are read.
+// 0.07). Every ((faces - 1) / 16,384)-th pair is read (at least every
+// one): 16,384 to 32,767 pairs from 16,385 faces on.
 double face_order_scatter(const Mesh& mesh);
 
 }  // namespace iteas
