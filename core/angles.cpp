@@ -204,10 +204,7 @@ struct PointBlock {
   PointBlock() {
     for (int j = 0; j < 9; ++j) at[j] = v[j];
   }
-  void gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n) {
-    if (faces) gather_faces(mesh, [&](int i) { return int64_t(faces[first + i]); }, n);
-    else gather_faces(mesh, [&](int i) { return first + i; }, n);
-  }
+  void gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n);
   template <typename Face>
   void gather_faces(const Mesh& mesh, Face face, int n) {
     const float* p = mesh.positions.data();
@@ -222,6 +219,75 @@ struct PointBlock {
     }
   }
 };
+
+#if ITEAS_X86_FEATURES
+namespace {
+// PointBlock::gather of faces first, first + 1, ... sixteen at a time, where
+// the processor has AVX-512: each point read as four floats (its x, y, z and
+// the next float), four points to a register, the coordinates picked out in
+// face order by permutations. A group whose faces use the mesh's last vertex
+// (whose fourth float lies past the array) is left to the scalar loop, as
+// are the last faces (under sixteen). Returns the faces done from the
+// start: the groups before the first one left. (The scalar copy takes nine
+// loads and nine stores a face. The summary with the quality, one thread,
+// AMD Zen 5 class: bunny-npm level 1 0.114 -> 0.100 ms, level 3 1.65 ->
+// 1.36 ms, level 4 7.6 -> 6.6-6.9 ms.)
+// (Masked forms where GCC 12 warns of the plain ones' undefined operand.)
+__attribute__((target("avx512f"))) int gather_points_avx512(const float* p, const int32_t* cv, int64_t first,
+                                                            int n, int64_t points, float (*out)[PointBlock::kSize]) {
+  const __m512i x = _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 0, 0, 0, 0, 0, 0, 0, 0);
+  const __m512i one = _mm512_set1_epi32(1);
+  const __m512i last = _mm512_set1_epi32(int32_t(points - 1));
+  auto point = [p](int32_t v) __attribute__((target("avx512f"))) { return _mm_loadu_ps(p + 3 * size_t(v)); };
+  int i = 0;
+  for (; i + 16 <= n; i += 16) {
+    const int32_t* t = cv + 3 * (first + i);
+    const __m512i a = _mm512_loadu_si512(t), b = _mm512_loadu_si512(t + 16), c = _mm512_loadu_si512(t + 32);
+    if (_mm512_cmpge_epi32_mask(_mm512_maskz_max_epi32(0xFFFF, _mm512_maskz_max_epi32(0xFFFF, a, b), c), last)) break;
+    for (int k = 0; k < 3; ++k) {
+      __m512 r[4];
+      for (int e = 0; e < 4; ++e) {
+        const int32_t* f = t + 3 * (4 * e) + k;  // face 4e's point k; the next faces 3 entries on
+        __m512 v = _mm512_castps128_ps512(point(f[0]));
+        v = _mm512_insertf32x4(v, point(f[3]), 1);
+        v = _mm512_insertf32x4(v, point(f[6]), 2);
+        r[e] = _mm512_insertf32x4(v, point(f[9]), 3);
+      }
+      __m512i pick = x;
+      for (int j = 0; j < 3; ++j, pick = _mm512_add_epi32(pick, one)) {
+        // Faces 0-7 from r[0], r[1]; 8-15 from r[2], r[3]; the low halves joined.
+        const __m512 lo = _mm512_permutex2var_ps(r[0], pick, r[1]), hi = _mm512_permutex2var_ps(r[2], pick, r[3]);
+        _mm512_storeu_ps(out[3 * k + j] + i, _mm512_maskz_shuffle_f32x4(0xFFFF, lo, hi, 0x44));
+      }
+    }
+  }
+  return i;
+}
+}  // namespace
+#endif
+
+void PointBlock::gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n) {
+  if (faces) {
+    gather_faces(mesh, [&](int i) { return int64_t(faces[first + i]); }, n);
+    return;
+  }
+  int done = 0;
+#if ITEAS_X86_FEATURES
+  if (cpu_has(CpuFeature::kAvx512))
+    done = gather_points_avx512(mesh.positions.data(), mesh.corner_vertex.data(), first, n, mesh.num_vertices(), v);
+#endif
+  if (done == n) return;
+  // The rest: faces first + done, ... into the arrays from entry |done|.
+  const float* p = mesh.positions.data();
+  const int32_t* cv = mesh.corner_vertex.data();
+  for (int i = done; i < n; ++i) {
+    const int32_t* t = cv + 3 * size_t(first + i);
+    for (int k = 0; k < 3; ++k) {
+      const float* x = p + 3 * size_t(t[k]);
+      for (int j = 0; j < 3; ++j) v[3 * k + j][i] = x[j];
+    }
+  }
+}
 
 // Per face of a block (its corners' points gathered per coordinate: a, q, r
 // times x, y, z): the atan2 arguments of its smallest angle in double
@@ -677,22 +743,47 @@ __attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t
   return c;
 }
 
-// The listed edges' normals, gathered from the block's cache into the six
-// arrays of summarize_angles (the first face's x, y, z, then the other's).
+// The listed edges' normals, from the block's cache into the six arrays of
+// summarize_angles (the first face's x, y, z, then the other's). Sixteen
+// edges at a time, each normal read as four floats (its x, y, z and the next
+// float, which the cache holds one more of), four normals to a register, and
+// the four registers transposed: edge 4e + l lands in lane 4l + e, for both
+// faces alike, an order the tally does not depend on. The last few edges
+// (under sixteen) copied one by one in order. (Sixteen-lane gathers before:
+// one took 4.9 ns here, AMD Zen 5 class, against 0.16 ns a scalar indexed
+// load. The summary with the quality, one thread: bunny-npm level 1 0.128
+// -> 0.113 ms, level 3 1.90 -> 1.61 ms, level 4 8.46 -> 7.59 ms.)
 __attribute__((target("avx512f"))) void gather_block_normals_avx512(const float* normals, const int32_t* near_a,
                                                                     const int32_t* near_b, int n,
                                                                     float* const* soa) {
-  for (int i = 0; i < n; i += 16) {
-    const __mmask16 m = n - i >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << (n - i)) - 1);
-    const __m512i a = _mm512_maskz_loadu_epi32(m, near_a + i), b = _mm512_maskz_loadu_epi32(m, near_b + i);
-    for (int k = 0; k < 3; ++k) {
-      const __m512i kk = _mm512_set1_epi32(k);
-      _mm512_mask_storeu_ps(soa[k] + i, m,
-                            _mm512_mask_i32gather_ps(_mm512_setzero_ps(), m, _mm512_add_epi32(a, kk), normals, 4));
-      _mm512_mask_storeu_ps(soa[3 + k] + i, m,
-                            _mm512_mask_i32gather_ps(_mm512_setzero_ps(), m, _mm512_add_epi32(b, kk), normals, 4));
+  int i = 0;
+  for (; i + 16 <= n; i += 16) {
+    for (int side = 0; side < 2; ++side) {
+      const int32_t* at = (side == 0 ? near_a : near_b) + i;
+      __m512 r[4];
+      for (int e = 0; e < 4; ++e) {
+        __m512 v = _mm512_castps128_ps512(_mm_loadu_ps(normals + at[4 * e]));
+        v = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 1]), 1);
+        v = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 2]), 2);
+        r[e] = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 3]), 3);
+      }
+      // (Masked forms throughout: GCC 12 warns of the plain ones'
+      // undefined pass-through operand.)
+      const __m512d t0 = _mm512_castps_pd(_mm512_maskz_unpacklo_ps(0xFFFF, r[0], r[1]));
+      const __m512d t1 = _mm512_castps_pd(_mm512_maskz_unpackhi_ps(0xFFFF, r[0], r[1]));
+      const __m512d t2 = _mm512_castps_pd(_mm512_maskz_unpacklo_ps(0xFFFF, r[2], r[3]));
+      const __m512d t3 = _mm512_castps_pd(_mm512_maskz_unpackhi_ps(0xFFFF, r[2], r[3]));
+      float* const* out = soa + 3 * side;
+      _mm512_storeu_ps(out[0] + i, _mm512_castpd_ps(_mm512_maskz_unpacklo_pd(0xFF, t0, t2)));
+      _mm512_storeu_ps(out[1] + i, _mm512_castpd_ps(_mm512_maskz_unpackhi_pd(0xFF, t0, t2)));
+      _mm512_storeu_ps(out[2] + i, _mm512_castpd_ps(_mm512_maskz_unpacklo_pd(0xFF, t1, t3)));
     }
   }
+  for (; i < n; ++i)
+    for (int k = 0; k < 3; ++k) {
+      soa[k][i] = normals[near_a[i] + k];
+      soa[3 + k][i] = normals[near_b[i] + k];
+    }
 }
 }  // namespace
 #endif
@@ -731,7 +822,10 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     // sines and cosines go through small blocks on the stack.
     constexpr int kBlock = 1024;
     float ys[kBlock], xs[kBlock], ts[kBlock];
-    Array<float> cache(theta ? 0 : 3 * std::min(kFaces, e - b)), gathered(theta ? 0 : 6 * kBlock);  // written before read
+    // (The cache holds one float more: the edges' normals are read four
+    // floats at a time.)
+    Array<float> cache(theta ? 0 : 3 * std::min(kFaces, e - b) + 1), gathered(theta ? 0 : 6 * kBlock);  // written before read
+    if (!theta) cache.back() = 0;
     // Both normals of each edge of a block, one array per coordinate (none
     // when theta is given).
     float* soa[6] = {};
