@@ -453,6 +453,18 @@ TEST(Angles, ExactAnglesAreNormalAngleBitForBit) {
     ++meshes;
   }
   EXPECT_GE(meshes, 10);
+#if ITEAS_X86_FEATURES
+  // Where the processor has AVX-512, a chunk's edges are listed sixteen
+  // corners at a time; capped at AVX2, one at a time: both exact.
+  if (cpu_has(CpuFeature::kAvx512)) {
+    struct Cap {
+      Cap() { cpu_feature_cap() = int(CpuFeature::kAvx2); }
+      ~Cap() { cpu_feature_cap() = int(CpuFeature::kAvx512); }
+    } cap;
+    expect_exact(h, "hinges, AVX2 at most", 2);
+    for (const test::NamedMesh& c : test::valid_meshes(60000)) expect_exact(c.mesh, c.name + ", AVX2 at most", 1);
+  }
+#endif
 }
 
 // The statistics' fast paths (single-precision normals, polynomial atan2, the
