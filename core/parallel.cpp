@@ -91,7 +91,8 @@ class Pool {
   }
 
   // For work the caller may run alone: true when the first worker is awake
-  // (it spins for about 60 µs after each loop, and for 2 ms once roused),
+  // (it spins for about 60 µs after each loop and yields the CPU for about
+  // 940 µs more before it sleeps, or spins for 2 ms once roused),
   // and then the round trip below is measured again if stale. Otherwise the
   // worker is started, or woken to spin for 2 ms, so that a call soon after
   // this one finds it awake (a job that did not wait for it leaves it asleep
@@ -244,29 +245,62 @@ class Pool {
     tl_in_loop = true;
     uint64_t seen = 0;
     for (;;) {
-      // Spin about 60 µs for the next loop, then sleep. A worker that has
-      // run out of pieces waits for the caller to finish the loop's last
-      // ones (up to a piece's length) and then for the serial step after it;
-      // with 20 µs it was often asleep when the next loop came (bunny-npm
-      // level 3, the last level's children after its data pass: asleep in 84 %
-      // of the runs, waking took 22-38 µs), and level 3 on two threads took
-      // 1.38 against 1.30 ms (150 µs: no better). (On an earlier machine
-      // longer spins measured slower: there a spinning thread took from the
-      // caller's serial steps.)
-      const auto until = std::chrono::steady_clock::now() + (s->linger.load(std::memory_order_relaxed) && s->linger.exchange(false, std::memory_order_relaxed)
-                                                                  ? std::chrono::microseconds(2000)
-                                                                  : std::chrono::microseconds(60));
+      // Spin about 60 µs for the next loop, then spin yielding the CPU
+      // (sched_yield each turn) for about 940 µs more, then sleep. A worker
+      // that has run out of pieces waits for the caller to finish the loop's
+      // last ones (up to a piece's length) and then for the serial step
+      // after it; with 20 µs it was often asleep when the next loop came
+      // (bunny-npm level 3, the last level's children after its data pass:
+      // asleep in 84 % of the runs, waking took 22-38 µs), and level 3 on two
+      // threads took 1.38 against 1.30 ms (150 µs: no better). The default
+      // mode's levels have serial steps of 0.06-1 ms between their loops, and
+      // a worker asleep there made a new process's job on two threads slower
+      // than on one about half the time (AMD Zen 5 class, nested virtual
+      // machine; refine phase of the CLI at the defaults, two threads, 25
+      // runs each, median and 90th percentile: bunny 26.2 / 28.3 -> 16.5 /
+      // 19.3 ms, Max Planck 24.2 / 32.2 -> 20.7 / 23.7 ms, fertility 17.4 /
+      // 19.0 -> 12.3 / 15.6 ms; one thread 24.3, 30.1 and 15.5 ms).
+      // Yielding, not plain spinning, after the first 60 µs: other work on
+      // the machine gets the CPU. A plain 1 ms spin measured as fast alone
+      // but made two CLI processes at once (two threads each, two CPUs) 25 %
+      // slower (ten pairs, bunny and Max Planck: 0.64 -> 0.80 s), the
+      // yielding one 0.65-0.66 -> 0.60 s. A ping (the round trip measured)
+      // puts a yielding worker back to spinning: answered between two
+      // yields, system calls, it read as CPUs far apart, and small jobs then
+      // ran on one thread. (On an earlier machine longer plain spins measured
+      // slower: there a spinning thread took from the caller's serial steps.)
+      auto until = std::chrono::steady_clock::now() + (s->linger.load(std::memory_order_relaxed) && s->linger.exchange(false, std::memory_order_relaxed)
+                                                            ? std::chrono::microseconds(2000)
+                                                            : std::chrono::microseconds(60));
+      const auto yield_until = until + std::chrono::microseconds(940);
       int spins = 0;
+      bool yielding = false;
       while (s->go.load(std::memory_order_acquire) == seen) {
         uint32_t p = s->ping.load(std::memory_order_acquire);
-        if (p & 1u) s->ping.compare_exchange_strong(p, p + 1, std::memory_order_acq_rel);
-        cpu_relax();
-        if ((++spins & 255) == 0 && std::chrono::steady_clock::now() > until) {
-          std::unique_lock<std::mutex> lock(s->mutex);
-          s->sleeping.store(true, std::memory_order_seq_cst);
-          s->wake.wait(lock, [&] { return s->go.load(std::memory_order_seq_cst) != seen; });
-          s->sleeping.store(false, std::memory_order_relaxed);
+        if (p & 1u) {
+          s->ping.compare_exchange_strong(p, p + 1, std::memory_order_acq_rel);
+          // Measured: answer the next pings at once (a yield between two of
+          // them, a system call, read as CPUs far apart), spinning again
+          // for 60 µs.
+          if (yielding) {
+            yielding = false;
+            until = std::chrono::steady_clock::now() + std::chrono::microseconds(60);
+          }
         }
+        if (yielding) std::this_thread::yield();
+        else cpu_relax();
+        if ((++spins & (yielding ? 15 : 255)) != 0) continue;
+        const auto t = std::chrono::steady_clock::now();
+        if (!yielding) {
+          yielding = t > until;
+          continue;
+        }
+        if (t <= yield_until) continue;
+        yielding = false;
+        std::unique_lock<std::mutex> lock(s->mutex);
+        s->sleeping.store(true, std::memory_order_seq_cst);
+        s->wake.wait(lock, [&] { return s->go.load(std::memory_order_seq_cst) != seen; });
+        s->sleeping.store(false, std::memory_order_relaxed);
       }
       seen = s->go.load(std::memory_order_acquire);
       // Join the loop unless the caller has withdrawn it (then the loop's
