@@ -468,6 +468,50 @@ __attribute__((target("avx512f"))) int32_t list_chunk_edges_avx512(const int32_t
 }  // namespace
 #endif
 
+namespace {
+// edge_angles' angles of edges a block at a time: both faces' unit normals
+// gathered per coordinate, the angles from the vectorised polynomial, each
+// rounded to the float the library's atan2 gives, but where it lies within
+// 1e-12 of it (far beyond atan2_pos's error, a few units in the 16th digit)
+// of a boundary between two floats, or is not a number: those (about 2 in
+// 100,000 edges) are computed by angle_between itself, so every angle has
+// its bits. Each angle goes to both corners of its edge.
+struct AngleBlock {
+  static constexpr int kSize = PointBlock::kSize;
+  double gathered[6][kSize];
+  const double* g6[6];
+  int32_t corner[kSize];
+  double degrees[kSize];
+  int n = 0;
+  AngleBlock() {
+    for (int j = 0; j < 6; ++j) g6[j] = gathered[j];
+  }
+  // The edge at its first corner c, between the faces whose normals are
+  // (x[s1], y[s1], z[s1]) and (x[s2], ...).
+  void add(int32_t c, const double* x, const double* y, const double* z, int64_t s1, int64_t s2, float* theta,
+           const int32_t* opp) {
+    corner[n] = c;
+    gathered[0][n] = x[s1]; gathered[1][n] = y[s1]; gathered[2][n] = z[s1];
+    gathered[3][n] = x[s2]; gathered[4][n] = y[s2]; gathered[5][n] = z[s2];
+    if (++n == kSize) flush(theta, opp);
+  }
+  void flush(float* theta, const int32_t* opp) {
+    exact_degrees(g6, n, degrees);
+    for (int i = 0; i < n; ++i) {
+      const double d = degrees[i];
+      float a = float(d * (1.0 - 1e-12));
+      if (!(a == float(d * (1.0 + 1e-12)))) {
+        const double n1[3] = {gathered[0][i], gathered[1][i], gathered[2][i]};
+        const double n2[3] = {gathered[3][i], gathered[4][i], gathered[5][i]};
+        a = angle_between(n1, n2);
+      }
+      theta[corner[i]] = theta[opp[corner[i]]] = a;
+    }
+    n = 0;
+  }
+};
+}  // namespace
+
 void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, int threads,
                  const CarriedAngles& carried) {
   // Fixed chunks of faces: each lists the edges it computes (each edge at
@@ -490,6 +534,9 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   // chunk held the other up.)
   const int64_t nf = nc / 3;
   const int64_t used = resolve_threads(threads);
+  // Up to this many faces (1.5 MB of normals), several threads compute
+  // every face's normal first (below).
+  constexpr int64_t kWholeNormals = 65536;
   const int64_t kFaces = used == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * used)));
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
@@ -497,6 +544,37 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
 #if ITEAS_X86_FEATURES
   const bool wide512 = cpu_has(CpuFeature::kAvx512);
 #endif
+  if (!carried.theta && used > 1 && nf <= kWholeNormals) {
+    // Nothing carried, several threads, a small mesh: every face's normal
+    // once, on all threads, then the angles of the edges, a range of
+    // corners a thread. (Chunks of 256 faces, each computing the normals its
+    // edges need, computed a later chunk's face's normal once per edge; in a
+    // scanner's face order most edges reach a later chunk, and bunny-npm's
+    // angles took 36 µs on two threads as on one.)
+    Array<double> normals(3 * size_t(nf));
+    double *const nx = normals.data(), *const ny = nx + nf, *const nz = ny + nf;
+    parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+      int32_t list[PointBlock::kSize];
+      for (int64_t f0 = b; f0 < e; f0 += PointBlock::kSize) {
+        const int k = int(std::min<int64_t>(PointBlock::kSize, e - f0));
+        for (int i = 0; i < k; ++i) list[i] = int32_t(f0 + i);
+        face_normals(mesh, list, k, nx + f0, ny + f0, nz + f0);
+      }
+    }, 1024);
+    parallel_for(nc, threads, [&](int64_t b, int64_t e) {
+      AngleBlock block;
+      float* const th = theta.data();
+      for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
+        const int32_t d = opp[c];
+        if (d <= c) continue;  // (or -1): no edge here
+        const int32_t f = c / 3, g = d / 3;
+        if (std::isnan(nx[f]) || std::isnan(nx[g])) continue;  // a zero-area face: no angle
+        block.add(c, nx, ny, nz, f, g, th, opp);
+      }
+      block.flush(th, opp);
+    }, 3072);
+    return;
+  }
   parallel_for_chunks(chunks, threads, [&](int64_t b, int64_t e) {
     // Written before read: slot per face of the chunk (-1: not listed), the
     // faces listed (the chunk's own at most once, a later chunk's once per
@@ -508,12 +586,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     int32_t* const e1 = ec + (3 * kFaces + 1);
     int32_t* const e2 = e1 + (3 * kFaces + 1);
     Array<double> normals;
-    constexpr int kBlock = PointBlock::kSize;
-    double gathered[6][kBlock];
-    const double* g6[6];
-    for (int j = 0; j < 6; ++j) g6[j] = gathered[j];
-    int32_t corner[kBlock];
-    double degrees[kBlock];
+    AngleBlock block;
     for (int64_t k = b; k < e; ++k) {
       const int64_t f0 = k * kFaces, f1 = std::min(nf, f0 + kFaces);
       int32_t* sl = slot.data();
@@ -587,38 +660,15 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       normals.resize(3 * size_t(nl));
       face_normals(mesh, fl, nl, normals.data(), normals.data() + nl, normals.data() + 2 * size_t(nl));
       // The angles of the edges whose faces both have a normal, a block at a
-      // time. An angle rounds to the float the library's atan2 gives, but
-      // where it lies within 1e-12 of it (far beyond atan2_pos's error, a
-      // few units in the 16th digit) of a boundary between two floats, or
-      // is not a number: those (about 2 in 100,000 edges) are computed by
-      // angle_between itself, so every angle has its bits.
+      // time (AngleBlock).
       const double* nm = normals.data();  // x of every slot, then y, then z
-      int n = 0;
-      auto flush = [&] {
-        exact_degrees(g6, n, degrees);
-        for (int i = 0; i < n; ++i) {
-          const double d = degrees[i];
-          float a = float(d * (1.0 - 1e-12));
-          if (!(a == float(d * (1.0 + 1e-12)))) {
-            const double n1[3] = {gathered[0][i], gathered[1][i], gathered[2][i]};
-            const double n2[3] = {gathered[3][i], gathered[4][i], gathered[5][i]};
-            a = angle_between(n1, n2);
-          }
-          theta[corner[i]] = theta[opp[corner[i]]] = a;
-        }
-        n = 0;
-      };
+      float* const th = theta.data();
       for (int64_t i = 0; i < ne; ++i) {
         const int32_t s1 = e1[i], s2 = e2[i];
         if (std::isnan(nm[s1]) || std::isnan(nm[s2])) continue;  // a zero-area face: no angle
-        corner[n] = ec[i];
-        for (int j = 0; j < 3; ++j) {
-          gathered[j][n] = nm[j * nl + s1];
-          gathered[3 + j][n] = nm[j * nl + s2];
-        }
-        if (++n == kBlock) flush();
+        block.add(ec[i], nm, nm + nl, nm + 2 * size_t(nl), s1, s2, th, opp);
       }
-      flush();
+      block.flush(th, opp);
     }
   });
 }
