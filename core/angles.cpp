@@ -205,12 +205,13 @@ struct PointBlock {
     for (int j = 0; j < 9; ++j) at[j] = v[j];
   }
   void gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n);
+  // Entries [from, n): face(i)'s points.
   template <typename Face>
-  void gather_faces(const Mesh& mesh, Face face, int n) {
+  void gather_faces(const Mesh& mesh, Face face, int from, int n) {
     const float* p = mesh.positions.data();
     const int32_t* cv = mesh.corner_vertex.data();
     float(*out)[kSize] = v;
-    for (int i = 0; i < n; ++i) {
+    for (int i = from; i < n; ++i) {
       const int32_t* t = cv + 3 * size_t(face(i));
       for (int k = 0; k < 3; ++k) {
         const float* x = p + 3 * size_t(t[k]);
@@ -268,7 +269,7 @@ __attribute__((target("avx512f"))) int gather_points_avx512(const float* p, cons
 
 void PointBlock::gather(const Mesh& mesh, const int32_t* faces, int64_t first, int n) {
   if (faces) {
-    gather_faces(mesh, [&](int i) { return int64_t(faces[first + i]); }, n);
+    gather_faces(mesh, [&](int i) { return int64_t(faces[first + i]); }, 0, n);
     return;
   }
   int done = 0;
@@ -276,17 +277,7 @@ void PointBlock::gather(const Mesh& mesh, const int32_t* faces, int64_t first, i
   if (cpu_has(CpuFeature::kAvx512))
     done = gather_points_avx512(mesh.positions.data(), mesh.corner_vertex.data(), first, n, mesh.num_vertices(), v);
 #endif
-  if (done == n) return;
-  // The rest: faces first + done, ... into the arrays from entry |done|.
-  const float* p = mesh.positions.data();
-  const int32_t* cv = mesh.corner_vertex.data();
-  for (int i = done; i < n; ++i) {
-    const int32_t* t = cv + 3 * size_t(first + i);
-    for (int k = 0; k < 3; ++k) {
-      const float* x = p + 3 * size_t(t[k]);
-      for (int j = 0; j < 3; ++j) v[3 * k + j][i] = x[j];
-    }
-  }
+  gather_faces(mesh, [&](int i) { return first + i; }, done, n);  // the rest
 }
 
 // Per face of a block (its corners' points gathered per coordinate: a, q, r
@@ -407,13 +398,19 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void unit_normals(const float* 
   }
 }
 
-void face_normals(const Mesh& mesh, const int32_t* faces, int64_t n, double* nx, double* ny, double* nz) {
+// face_normals of faces[first + i], or of faces first + i without a list.
+static void face_normals_of(const Mesh& mesh, const int32_t* faces, int64_t first, int64_t n, double* nx,
+                            double* ny, double* nz) {
   PointBlock points;
   for (int64_t i0 = 0; i0 < n; i0 += PointBlock::kSize) {
     const int k = int(std::min<int64_t>(PointBlock::kSize, n - i0));
-    points.gather(mesh, faces, i0, k);
+    points.gather(mesh, faces, first + i0, k);
     unit_normals(points.at, k, nx + i0, ny + i0, nz + i0);
   }
+}
+
+void face_normals(const Mesh& mesh, const int32_t* faces, int64_t n, double* nx, double* ny, double* nz) {
+  face_normals_of(mesh, faces, 0, n, nx, ny, nz);
 }
 
 // Per edge of a block (both unit normals gathered, one array per
@@ -554,12 +551,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
     Array<double> normals(3 * size_t(nf));
     double *const nx = normals.data(), *const ny = nx + nf, *const nz = ny + nf;
     parallel_for(nf, threads, [&](int64_t b, int64_t e) {
-      int32_t list[PointBlock::kSize];
-      for (int64_t f0 = b; f0 < e; f0 += PointBlock::kSize) {
-        const int k = int(std::min<int64_t>(PointBlock::kSize, e - f0));
-        for (int i = 0; i < k; ++i) list[i] = int32_t(f0 + i);
-        face_normals(mesh, list, k, nx + f0, ny + f0, nz + f0);
-      }
+      face_normals_of(mesh, nullptr, b, e - b, nx + b, ny + b, nz + b);
     }, 1024);
     parallel_for(nc, threads, [&](int64_t b, int64_t e) {
       AngleBlock block;
@@ -939,69 +931,25 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   // 58,784 faces it took 448 KB more (37.9 -> 45.5 bytes an output triangle;
   // 0.652 -> 0.510 ms), over the 40 the benchmark allows, so not there.
   constexpr int64_t kWholeFaces = 2 * kFaces;
-  if (!theta && resolve_threads(threads) > 1 && nf > kFaces && nf <= kWholeFaces) {
-    Array<float> normals(3 * size_t(nf) + 1);  // one float more: read four at a time
-    normals.back() = 0;
+  const bool whole = !theta && resolve_threads(threads) > 1 && nf > kFaces && nf <= kWholeFaces;
+  Array<float> whole_normals(whole ? 3 * size_t(nf) + 1 : 0);  // one float more: read four at a time
+  if (whole) {
+    whole_normals.back() = 0;
     parallel_for(nf, threads, [&](int64_t b, int64_t e) {
       PointBlock points;
       QualityTally quality_tally(with_quality);
       for (int64_t g0 = b; g0 < e; g0 += PointBlock::kSize) {
         const int k = int(std::min<int64_t>(PointBlock::kSize, e - g0));
         points.gather(mesh, nullptr, g0, k);
-        normals_of_points(points.at, k, normals.data() + 3 * size_t(g0));
+        normals_of_points(points.at, k, whole_normals.data() + 3 * size_t(g0));
         if (with_quality) quality_tally.add(points, k);
       }
       if (!with_quality) return;
       std::lock_guard<std::mutex> lock(mutex);
       quality_tally.merge_into(quality_all, min_angle);
     }, 2048);
-    const int32_t* opp = ct.opposites().data();
-    const float* nm = normals.data();
-    parallel_for(nc, threads, [&](int64_t b, int64_t e) {
-      constexpr int kBlock = 1024;
-      float ys[kBlock], xs[kBlock], ts[kBlock];
-      Array<float> gathered(6 * kBlock);  // written before read
-      float* soa[6];
-      for (int j = 0; j < 6; ++j) soa[j] = gathered.data() + j * kBlock;
-      AngleTally tally;
-      int n = 0;
-      auto flush = [&] {
-        sine_cosine(soa, n, ys, xs);
-        atan2_degrees(ys, xs, ts, n);
-        count_into(tally, ts, n);
-        n = 0;
-      };
-      int32_t c = int32_t(b);
-#if ITEAS_X86_FEATURES
-      if (wide512) {
-        // Every face is in the array: every edge is listed (none left over).
-        int32_t near_a[kBlock], near_b[kBlock], none[16];
-        int n_near = 0, n_none = 0;
-        while (c + 16 <= int32_t(e)) {
-          c = list_block_edges_avx512(opp, c, int32_t(e), 0, int32_t(nf), near_a, near_b, n_near, kBlock, none,
-                                      n_none, 16);
-          gather_block_normals_avx512(nm, near_a, near_b, n_near, soa);
-          n = n_near;
-          flush();
-          n_near = 0;
-        }
-      }
-#endif
-      for (; c < int32_t(e); ++c) {
-        const int32_t d = opp[c];
-        if (d <= c) continue;  // (or -1): no edge here
-        const float *n1 = nm + 3 * size_t(c / 3), *n2 = nm + 3 * size_t(d / 3);
-        for (int j = 0; j < 3; ++j) {
-          soa[j][n] = n1[j];
-          soa[3 + j][n] = n2[j];
-        }
-        if (++n == kBlock) flush();
-      }
-      flush();
-      std::lock_guard<std::mutex> lock(mutex);
-      all.merge(tally);
-    }, 3 * kFaces);
-  } else parallel_for(nf, threads, [&](int64_t b, int64_t e) {
+  }
+  parallel_for(nf, threads, [&](int64_t b, int64_t e) {
     // Per block: the faces' normals, then per edge the sine and cosine of
     // the angle, then the angles (a vectorised loop), in edge order. The
     // sines and cosines go through small blocks on the stack.
@@ -1009,8 +957,8 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     float ys[kBlock], xs[kBlock], ts[kBlock];
     // (The cache holds one float more: the edges' normals are read four
     // floats at a time.)
-    Array<float> cache(theta ? 0 : 3 * std::min(kFaces, e - b) + 1), gathered(theta ? 0 : 6 * kBlock);  // written before read
-    if (!theta) cache.back() = 0;
+    Array<float> cache(theta || whole ? 0 : 3 * std::min(kFaces, e - b) + 1), gathered(theta ? 0 : 6 * kBlock);  // written before read
+    if (!cache.empty()) cache.back() = 0;
     // Both normals of each edge of a block, one array per coordinate (none
     // when theta is given).
     float* soa[6] = {};
@@ -1026,9 +974,9 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       int32_t face;
       float n[3];
     };
-    std::vector<std::vector<Waiting>> waiting(theta ? 0 : size_t((e - b + kFaces - 1) / kFaces));
+    std::vector<std::vector<Waiting>> waiting(theta || whole ? 0 : size_t((e - b + kFaces - 1) / kFaces));
     AngleTally tally;
-    QualityTally quality_tally(with_quality);
+    QualityTally quality_tally(with_quality && !whole);  // (whole: tallied above)
     auto count = [&](const float* angles, int n) { count_into(tally, angles, n); };
     for (int64_t f0 = b; f0 < e; f0 += kFaces) {
       const int64_t f1 = std::min(e, f0 + kFaces);
@@ -1048,7 +996,10 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         count(ts, n);
         continue;
       }
-      if (with_quality) {
+      // |normals| holds the normals of faces [h0, h1): the block's, or
+      // every face's (whole, computed above with the quality).
+      const int64_t h0 = whole ? 0 : f0, h1 = whole ? nf : f1;
+      if (!whole && with_quality) {
         PointBlock points;
         for (int64_t g0 = f0; g0 < f1; g0 += PointBlock::kSize) {
           const int k = int(std::min<int64_t>(PointBlock::kSize, f1 - g0));
@@ -1056,7 +1007,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
           normals_of_points(points.at, k, cache.data() + 3 * size_t(g0 - f0));
           quality_tally.add(points, k);
         }
-      } else {
+      } else if (!whole) {
         face_normals_or_nan(mesh, f0, f1, cache.data());
       }
       int n = 0;
@@ -1070,21 +1021,23 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       // in memory, and read through soa the pointers were reloaded per edge.
       float *const ax = soa[0], *const ay = soa[1], *const az = soa[2];
       float *const gx = soa[3], *const gy = soa[4], *const gz = soa[5];
-      const float* const normals = cache.data();
+      const float* const normals = whole ? whole_normals.data() : cache.data();
       auto push = [&](const float* n1, const float* ng) {
         ax[n] = n1[0]; ay[n] = n1[1]; az[n] = n1[2];
         gx[n] = ng[0]; gy[n] = ng[1]; gz[n] = ng[2];
         if (++n == kBlock) flush();
       };
-      std::vector<Waiting>& here = waiting[size_t((f0 - b) / kFaces)];
-      for (const Waiting& w : here) push(w.n, normals + 3 * size_t(w.face - f0));
-      std::vector<Waiting>().swap(here);
+      if (!whole) {
+        std::vector<Waiting>& here = waiting[size_t((f0 - b) / kFaces)];
+        for (const Waiting& w : here) push(w.n, normals + 3 * size_t(w.face - f0));
+        std::vector<Waiting>().swap(here);
+      }
       // The edge at corner c, its first (d = opp[c] > c).
       auto edge = [&](int32_t c, int32_t d) {
         const int64_t g = d / 3;
-        const float* n1 = normals + 3 * size_t(c / 3 - f0);
-        if (g < f1) {
-          push(n1, normals + 3 * size_t(g - f0));
+        const float* n1 = normals + 3 * size_t(c / 3 - h0);
+        if (g < h1) {
+          push(n1, normals + 3 * size_t(g - h0));
         } else if (g < e) {
           waiting[size_t((g - b) / kFaces)].push_back({int32_t(g), {n1[0], n1[1], n1[2]}});
         } else {
@@ -1108,7 +1061,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         int32_t near_a[kBlock], near_b[kBlock], others[256];
         int n_near = 0, n_others = 0;
         for (;;) {
-          c = list_block_edges_avx512(opp, c, c_end, int32_t(f0), int32_t(f1), near_a, near_b, n_near, kBlock,
+          c = list_block_edges_avx512(opp, c, c_end, int32_t(h0), int32_t(h1), near_a, near_b, n_near, kBlock,
                                       others, n_others, 256);
           const bool last = c + 16 > c_end;
           if (last || n_others + 16 > 256) {
@@ -1135,7 +1088,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     }
     std::lock_guard<std::mutex> lock(mutex);
     all.merge(tally);
-    if (with_quality) quality_tally.merge_into(quality_all, min_angle);
+    if (with_quality && !whole) quality_tally.merge_into(quality_all, min_angle);
   }, theta ? 2048 : kFaces);  // normals: a block a piece (outside it, one more each)
   if (with_quality) *quality = quality_summary(quality_all, min_angle);
   AngleSummary total;

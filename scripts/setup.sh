@@ -6,7 +6,8 @@ cd "$(dirname "$0")/.."
 BUILD_DIR=${1:-build}
 BUILD_TYPE=${2:-Release}
 
-packages=(build-essential cmake ninja-build pkg-config git ca-certificates
+# (binutils: objdump, which core_rounding_test reads the core library with.)
+packages=(build-essential binutils cmake ninja-build pkg-config git ca-certificates
   libcpp-httplib-dev nlohmann-json3-dev libtinygltf-dev libdraco-dev draco libspdlog-dev libstb-dev
   libgtest-dev libgmock-dev libbenchmark-dev libopenmesh-dev)
 # The test suite also drives the web page in Debian's Chromium and puts nginx in
