@@ -285,6 +285,7 @@ RingTable& RingTable::operator=(const RingTable& o) {
   side = o.side;
   carried = o.carried;
   complete = o.complete;
+  walked_green = o.walked_green;
   // Each part at the same place in its copied storage.
   auto rebase = [&](auto& part, const auto& from) {
     using T = std::remove_pointer_t<decltype(part.p_)>;
@@ -317,6 +318,7 @@ void RingTable::swap(RingTable& o) noexcept {
   std::swap(slot, o.slot);
   std::swap(carried, o.carried);
   std::swap(complete, o.complete);
+  std::swap(walked_green, o.walked_green);
   kept.swap(o.kept);
   block.swap(o.block);
   side.swap(o.side);
@@ -409,6 +411,7 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     ring_points(mesh, vclass, out, threads, wide);
     return;
   }
+  out.walked_green = false;
   limit = std::max(std::min(limit, mesh.num_vertices()), 0);
   out.lay_out_kept(limit, 0);
   // A complete extraordinary vertex without a ring: at or above the limit
@@ -446,6 +449,49 @@ void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vcl
     out.complete = false;
     out.drop_slots();
   }
+  ring_points(mesh, vclass, out, threads, wide);
+}
+
+void build_level_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass,
+                       const std::vector<uint8_t>* green, RingTable& out, int threads, bool wide) {
+  const int32_t nv = mesh.num_vertices();
+  out.carried = false;
+  out.lay_out_kept(nv, 0);
+  bool unringed = false;
+  const int64_t total = ring_offsets(vclass, ct.vertex_corners().data(), nv, out.offset.data(), unringed, wide);
+  out.complete = false;  // (slots are never made here)
+  out.walked_green = true;
+  out.lay_out_block(total, 0, 0);
+  const int32_t* cv = mesh.corner_vertex.data();
+  const uint8_t* g = green && !green->empty() ? green->data() : nullptr;
+  // The extraordinary rule's walk (extraordinary_terms): from a corner at v,
+  // K steps right round v, each first passing over the apex corners of
+  // second green children (their bisecting edge is not in the parent's ring).
+  auto skip = [&](int32_t x) {
+    if (g)
+      while (x >= 0 && g[x / 3] == 2 && x % 3 == 2) x = ct.swing_right(x);
+    return x;
+  };
+  parallel_for(nv, threads, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int32_t off = out.offset[v];
+      if (off < 0) continue;
+      const int32_t K = vclass.valence[v];
+      const int32_t first = skip(ct.vertex_corner(int32_t(v)));
+      int32_t x = first;
+      for (int32_t j = 0; j < K && x >= 0; ++j) {
+        out.corner[off + j] = x;
+        out.neighbour[off + j] = cv[next_corner(x)];
+        x = skip(ct.swing_right(x));
+      }
+      // Only a fan the walk closes in K steps: the walk from any of its
+      // corners then takes the same K in the same cyclic order.
+      if (x != first || first < 0) {
+        out.offset[v] = -1;
+        for (int32_t j = 0; j < K; ++j) out.corner[off + j] = -1;
+      }
+    }
+  }, 512);
   ring_points(mesh, vclass, out, threads, wide);
 }
 
@@ -501,7 +547,7 @@ struct View {
   const int32_t* valence;
   const uint8_t* complete;
   double tension;
-  int32_t ring_limit;  // 0 without a ring table (and always with green pairs)
+  int32_t ring_limit;  // 0 without a ring table (and with green pairs, unless it was walked past them)
   const int32_t* ring_offset;
   const int32_t* ring_corner;
   const int32_t* ring_neighbour;
@@ -516,7 +562,7 @@ struct View {
         valence(ctx.vclass.valence.data()),
         complete(ctx.vclass.complete.data()),
         tension(ctx.tension),
-        ring_limit(!kGreens && ctx.rings ? int32_t(ctx.rings->offset.size()) : 0),
+        ring_limit(ctx.rings && (!kGreens || ctx.rings->walked_green) ? int32_t(ctx.rings->offset.size()) : 0),
         ring_offset(ring_limit ? ctx.rings->offset.data() : nullptr),
         ring_corner(ring_limit ? ctx.rings->corner.data() : nullptr),
         ring_neighbour(ring_limit ? ctx.rings->neighbour.data() : nullptr),
@@ -782,7 +828,7 @@ void extraordinary_terms(const View<G>& m, int32_t x0, int32_t valence, double s
   const int32_t v = m.cv[x0];
   out(v, 0.75 * scale);
   const double* w = K >= 3 && K < kMaxTabulated ? kWeights.w[K] : nullptr;
-  if (!G && v < m.ring_limit && m.ring_offset[v] >= 0) {
+  if (v < m.ring_limit && m.ring_offset[v] >= 0) {
     // The ring from x0 on is the stored ring rotated to x0's place.
     const int32_t* rc = m.ring_corner + m.ring_offset[v];
     const int32_t* nb = m.ring_neighbour + m.ring_offset[v];
@@ -828,7 +874,7 @@ template <bool G, typename Sink>
 ITEAS_INLINE void extraordinary(const View<G>& m, int32_t x0, int32_t valence, double scale, Sink& out) {
   if constexpr (std::is_same_v<Sink, PointSum>) {
     const int32_t v = m.cv[x0];
-    if (!G && v < m.ring_limit && m.ring_offset[v] >= 0) {
+    if (v < m.ring_limit && m.ring_offset[v] >= 0) {
       const int32_t off = m.ring_offset[v];
       const int i = ring_position(m.ring_corner + off, valence, x0);
       if (i < valence) {

@@ -74,6 +74,9 @@ struct RingTable {
   // input's vertices all below the limit, none left without; carried with
   // the rings, as uniform levels make no such vertex).
   bool complete = false;
+  // Built by build_level_rings for a level's green pairs (the rules of a
+  // context with green pairs read only such a table).
+  bool walked_green = false;
   // Per corner of the level, where the rings cover an eighth of the corners
   // or more (the first uniform levels of a typical mesh) and |complete|:
   // the ring entry whose point is the extraordinary rule, for the edge
@@ -134,8 +137,9 @@ struct ButterflyContext {
   // null or empty when there are none. Stencils see a green pair as its
   // parent (a, b, c): the bisecting edge (m, c) is not part of any ring.
   const std::vector<uint8_t>* green = nullptr;
-  // Optional (null: walk the fans); valid only for the level and positions it
-  // was built on, and never used with green pairs.
+  // Optional (null: walk the fans); valid only for the level, positions and
+  // green pairs it was built on. With green pairs only a table made by
+  // build_level_rings (RingTable::walked_green) is read.
   const RingTable* rings = nullptr;
   // The routines for wider registers where the processor has them: regular
   // stencils and rule points summed with AVX (the same bits as SSE2, fewer
@@ -170,6 +174,15 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 // to take with RingTable::release_block after the rings are used.
 void build_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass, int32_t limit, RingTable& out,
                  int threads = 1, bool wide = true, bool slots = true, int64_t at_least = 0);
+
+// Rings of every extraordinary vertex of an adaptive level, walked as the
+// extraordinary rule walks its fan: skipping the bisecting edge at the apex
+// of each green pair of |green| (null or empty: none), with the valences of
+// |vclass| (discount_green_apices'). A vertex whose walk of K steps does not
+// close its fan gets no ring (the rule then walks). RingTable::walked_green
+// is set: a ButterflyContext with these green pairs may then read it.
+void build_level_rings(const Mesh& mesh, const CornerTable& ct, const VertexClass& vclass,
+                       const std::vector<uint8_t>* green, RingTable& out, int threads = 1, bool wide = true);
 
 // After a uniform split of this level (children of face f are 4f..4f+3, child
 // k keeping corner k): keeps only the rings' corners, moved to the children,

@@ -135,6 +135,11 @@ struct State {
   // Uniform levels: rings of the extraordinary vertices, all of which are
   // input vertices (index below ring_limit).
   RingTable rings;
+  // Adaptive levels: the rings of every extraordinary vertex of the level
+  // (build_level_rings), made where select_faces measures most edges afresh
+  // and read by the level's Butterfly points until its data pass is done
+  // (select_faces, close_selection's green test, adaptive_level).
+  RingTable level_rings;
   const std::vector<uint8_t> no_flags{};  // empty: no sharp flags, no green pairs (ButterflyContext)
   int32_t ring_limit = 0;
   int threads = 1;
@@ -181,13 +186,15 @@ struct State {
   bool input_split = false;
   bool carry = true;  // RefineHooks::carry
   bool incremental_table = true;  // RefineHooks::incremental_table
+  bool level_rings_on = true;     // RefineHooks::level_rings
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
   const int64_t b = mesh_bytes(m) + vbytes(s.ct.opposites()) + vbytes(s.ct.vertex_corners()) + vbytes(s.ct.fans()) +
                     vbytes(s.theta) + vbytes(s.sharp) + vbytes(s.green) + vbytes(s.born) +
                     vbytes(s.bctx.vclass.valence) + vbytes(s.bctx.vclass.complete) + vbytes(s.rings.kept) +
-                    vbytes(s.rings.block) + vbytes(s.rings.side) +
+                    vbytes(s.rings.block) + vbytes(s.rings.side) + vbytes(s.level_rings.kept) +
+                    vbytes(s.level_rings.block) +
                     vbytes(s.carried.theta) + vbytes(s.carried.deviation) + vbytes(s.carried.kept_from) +
                     vbytes(s.carried.touched) + extra;
   s.peak = std::max(s.peak, b);
@@ -241,7 +248,14 @@ void current_angles(State& s, const Mesh& m) {
 }
 
 // Prepares the per-level analysis on the current mesh (ct must be valid).
+// The level's rings go (see State::level_rings).
+void drop_level_rings(State& s) {
+  if (s.bctx.rings == &s.level_rings) s.bctx.rings = nullptr;
+  RingTable().swap(s.level_rings);
+}
+
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
+  drop_level_rings(s);
   s.bctx.mesh = &m;
   s.bctx.ct = &s.ct;
   s.bctx.sharp = &s.sharp;
@@ -1109,6 +1123,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
     std::vector<StencilTerm> terms;
     apply_stencils(m, s.bctx, edges.data() + b, e - b, nv + int32_t(b), terms);
   }, 256);
+  drop_level_rings(s);  // the level's connectivity changes below
   if (wedges) {
     const int32_t first = m.num_wedges();
     grow_wedges(m, next_w);
@@ -1496,19 +1511,37 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     const bool reuse = carried.valid && !carried.deviation.empty();
     const int32_t* cv = m.corner_vertex.data();
     note_peak(s, m, vbytes(dev) + vbytes(verdict));
+    // Corners whose deviation is carried.
+    std::atomic<int64_t> measured{0};
     if (reuse) {
       // The angles' rule (CarriedAngles), a face at a time.
       const CarriedAngles edges = carried.edges();
       const float* old = carried.deviation.data();
       float* out = dev.data();
       parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+        int64_t n = 0;
         for (int64_t f = b; f < e; ++f) {
           bool kept[3];
           const int64_t from = edges.carried_corners(cv, f, kept);
-          for (int k = 0; k < 3; ++k)
-            if (kept[k]) out[3 * f + k] = old[3 * from + k];
+          for (int k = 0; k < 3; ++k) {
+            const float d = old[3 * from + k];
+            if (kept[k]) out[3 * f + k] = d;
+            n += kept[k] && d >= 0.0f;
+          }
         }
+        measured.fetch_add(n, std::memory_order_relaxed);
       }, 512);
+    }
+    // Where most edges are measured afresh (the first levels), the rings of
+    // the extraordinary vertices first, each walked once and its rule's
+    // points summed for every edge round it (build_level_rings), instead of
+    // walking a vertex's fan once for each of its edges. On later levels,
+    // where a few regions changed, the walks for those edges cost less than
+    // rings for every vertex.
+    if (s.level_rings_on && 2 * measured.load() <= nc) {
+      build_level_rings(m, s.ct, s.bctx.vclass, &s.green, s.level_rings, s.threads, s.bctx.wide);
+      s.bctx.rings = &s.level_rings;
+      note_peak(s, m, vbytes(dev) + vbytes(verdict));
     }
     parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
       // A block of edges at a time: their Butterfly points in one call
@@ -1699,6 +1732,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   s.input_split = stats.topology.split_vertices > 0;
   s.carry = hooks.carry;
   s.incremental_table = hooks.incremental_table;
+  s.level_rings_on = hooks.level_rings;
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
   const bool adaptive = o.mode != Mode::kUniform;

@@ -69,6 +69,10 @@ struct RefineHooks {
   // Testing: false builds every adaptive level's corner table from scratch
   // instead of renumbering the old one and matching only round changed faces.
   bool incremental_table = true;
+  // Testing: false walks an extraordinary vertex's fan for each of its edges
+  // on every adaptive level instead of reading the level's rings
+  // (build_level_rings) where most edges are measured afresh.
+  bool level_rings = true;
   // Benchmarks: false skips the smoothness and quality statistics of uniform
   // refinement (θ after each level, triangle angles before and after), to time
   // the subdivision alone. Adaptive modes need θ and compute it regardless.

@@ -1017,6 +1017,45 @@ TEST(Refine, RenumberedTablesRefineAsFullBuildsDo) {
   EXPECT_EQ(differ, 0);
 }
 
+// Adaptive levels that measure most edges afresh read each extraordinary
+// vertex's rule from a table of the level's rings (build_level_rings, walked
+// past green pairs' bisecting edges) instead of walking its fan for every
+// edge: the selection, the closure's green test and the data pass must give
+// what the walks give, bit for bit, with every option that feeds the
+// stencils (creases, tension, green pairs), on one thread and two. Without
+// carried deviations (carry off) every level builds the table, the levels
+// with green pairs included.
+TEST(Refine, LevelRingsRefineAsTheWalksDo) {
+  int n = 0, differ = 0;
+  for (const Case& c : cases(8000)) {
+    for (int variant = 0; variant < 3; ++variant) {
+      RefineOptions o = opts(Mode::kIteas, 3);
+      if (variant == 1) { o.crease_angle = 30; o.tension = 0.03; }
+      if (variant == 2) o.threads = 2;
+      for (const bool carry : {true, false}) {
+        Mesh read = c.mesh, walked = c.mesh;
+        RefineStats st_read, st_walked;
+        RefineHooks h;
+        h.carry = carry;
+        refine_mesh(read, o, h, &st_read);
+        h.level_rings = false;
+        refine_mesh(walked, o, h, &st_walked);
+        bool same = same_mesh(read, walked) && st_read.levels.size() == st_walked.levels.size();
+        for (size_t l = 0; same && l < st_walked.levels.size(); ++l)
+          same = st_read.levels[l].faces_selected == st_walked.levels[l].faces_selected &&
+                 st_read.levels[l].green_splits == st_walked.levels[l].green_splits &&
+                 st_read.levels[l].faces_within_tolerance == st_walked.levels[l].faces_within_tolerance &&
+                 st_read.levels[l].vertices_guarded == st_walked.levels[l].vertices_guarded;
+        EXPECT_TRUE(same) << c.name << " variant " << variant << " carry " << carry;
+        differ += !same;
+        ++n;
+      }
+    }
+  }
+  EXPECT_GE(n, 60);
+  EXPECT_EQ(differ, 0);
+}
+
 // The statistics after adaptive levels are taken from the angles the
 // selection reads (carried where unchanged), not from a separate
 // single-precision pass: the output's summary must be what the exact angle of
