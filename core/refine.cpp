@@ -1524,9 +1524,10 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
           bool kept[3];
           const int64_t from = edges.carried_corners(cv, f, kept);
           for (int k = 0; k < 3; ++k) {
+            if (!kept[k]) continue;  // (from is -1 for a face not kept)
             const float d = old[3 * from + k];
-            if (kept[k]) out[3 * f + k] = d;
-            n += kept[k] && d >= 0.0f;
+            out[3 * f + k] = d;
+            n += d >= 0.0f;
           }
         }
         measured.fetch_add(n, std::memory_order_relaxed);

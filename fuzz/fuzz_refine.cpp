@@ -68,6 +68,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   o.max_triangles = 20000;
   iteas::Mesh two = (data[2] & 16) ? m : iteas::Mesh();
   iteas::Mesh narrow = (data[2] & 64) ? m : iteas::Mesh();
+  iteas::Mesh fresh = (data[2] & 128) ? m : iteas::Mesh(), walked = fresh;
   iteas::RefineStats st;
   iteas::refine_mesh(m, o, iteas::RefineHooks(), &st);
   // The input refined again (|again|, a copy of it) with other threads or
@@ -96,6 +97,18 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     iteas::RefineHooks baseline;
     baseline.wide = false;
     same_again(narrow, 1, baseline);
+  }
+  if (data[2] & 128) {
+    // Oracle: adaptive levels' extraordinary rules read from a table of the
+    // level's rings (build_level_rings) against walks of the fans. Without
+    // carried deviations every adaptive level makes the table, those with
+    // green pairs included; both must give the mesh of the first run.
+    iteas::RefineHooks every_level;
+    every_level.carry = false;
+    same_again(fresh, 1, every_level);
+    iteas::RefineHooks no_table = every_level;
+    no_table.level_rings = false;
+    same_again(walked, 1, no_table);
   }
   return 0;
 }
