@@ -247,13 +247,13 @@ void current_angles(State& s, const Mesh& m) {
   s.theta_current = true;
 }
 
-// Prepares the per-level analysis on the current mesh (ct must be valid).
 // The level's rings go (see State::level_rings).
 void drop_level_rings(State& s) {
   if (s.bctx.rings == &s.level_rings) s.bctx.rings = nullptr;
   RingTable().swap(s.level_rings);
 }
 
+// Prepares the per-level analysis on the current mesh (ct must be valid).
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
   drop_level_rings(s);
   s.bctx.mesh = &m;
