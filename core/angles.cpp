@@ -223,6 +223,16 @@ struct PointBlock {
 
 #if ITEAS_X86_FEATURES
 namespace {
+// Four points (or normals) of three floats, each read as four floats (the
+// fourth, the next point's first, must be readable), one to a 128-bit lane.
+__attribute__((target("avx512f"), always_inline)) inline __m512 four_points(const float* a, const float* b,
+                                                                            const float* c, const float* d) {
+  __m512 v = _mm512_castps128_ps512(_mm_loadu_ps(a));
+  v = _mm512_insertf32x4(v, _mm_loadu_ps(b), 1);
+  v = _mm512_insertf32x4(v, _mm_loadu_ps(c), 2);
+  return _mm512_insertf32x4(v, _mm_loadu_ps(d), 3);
+}
+
 // PointBlock::gather of faces first, first + 1, ... sixteen at a time, where
 // the processor has AVX-512: each point read as four floats (its x, y, z and
 // the next float), four points to a register, the coordinates picked out in
@@ -239,7 +249,6 @@ __attribute__((target("avx512f"))) int gather_points_avx512(const float* p, cons
   const __m512i x = _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 0, 0, 0, 0, 0, 0, 0, 0);
   const __m512i one = _mm512_set1_epi32(1);
   const __m512i last = _mm512_set1_epi32(int32_t(points - 1));
-  auto point = [p](int32_t v) __attribute__((target("avx512f"))) { return _mm_loadu_ps(p + 3 * size_t(v)); };
   int i = 0;
   for (; i + 16 <= n; i += 16) {
     const int32_t* t = cv + 3 * (first + i);
@@ -249,10 +258,7 @@ __attribute__((target("avx512f"))) int gather_points_avx512(const float* p, cons
       __m512 r[4];
       for (int e = 0; e < 4; ++e) {
         const int32_t* f = t + 3 * (4 * e) + k;  // face 4e's point k; the next faces 3 entries on
-        __m512 v = _mm512_castps128_ps512(point(f[0]));
-        v = _mm512_insertf32x4(v, point(f[3]), 1);
-        v = _mm512_insertf32x4(v, point(f[6]), 2);
-        r[e] = _mm512_insertf32x4(v, point(f[9]), 3);
+        r[e] = four_points(p + 3 * size_t(f[0]), p + 3 * size_t(f[3]), p + 3 * size_t(f[6]), p + 3 * size_t(f[9]));
       }
       __m512i pick = x;
       for (int j = 0; j < 3; ++j, pick = _mm512_add_epi32(pick, one)) {
@@ -853,12 +859,9 @@ __attribute__((target("avx512f"))) void gather_block_normals_avx512(const float*
     for (int side = 0; side < 2; ++side) {
       const int32_t* at = (side == 0 ? near_a : near_b) + i;
       __m512 r[4];
-      for (int e = 0; e < 4; ++e) {
-        __m512 v = _mm512_castps128_ps512(_mm_loadu_ps(normals + at[4 * e]));
-        v = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 1]), 1);
-        v = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 2]), 2);
-        r[e] = _mm512_insertf32x4(v, _mm_loadu_ps(normals + at[4 * e + 3]), 3);
-      }
+      for (int e = 0; e < 4; ++e)
+        r[e] = four_points(normals + at[4 * e], normals + at[4 * e + 1], normals + at[4 * e + 2],
+                           normals + at[4 * e + 3]);
       // (Masked forms throughout: GCC 12 warns of the plain ones'
       // undefined pass-through operand.)
       const __m512d t0 = _mm512_castps_pd(_mm512_maskz_unpacklo_ps(0xFFFF, r[0], r[1]));

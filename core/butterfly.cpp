@@ -486,10 +486,7 @@ void build_level_rings(const Mesh& mesh, const CornerTable& ct, const VertexClas
       }
       // Only a fan the walk closes in K steps: the walk from any of its
       // corners then takes the same K in the same cyclic order.
-      if (x != first || first < 0) {
-        out.offset[v] = -1;
-        for (int32_t j = 0; j < K; ++j) out.corner[off + j] = -1;
-      }
+      if (x != first || first < 0) out.offset[v] = -1;
     }
   }, 512);
   ring_points(mesh, vclass, out, threads, wide);

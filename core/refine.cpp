@@ -247,15 +247,8 @@ void current_angles(State& s, const Mesh& m) {
   s.theta_current = true;
 }
 
-// The level's rings go (see State::level_rings).
-void drop_level_rings(State& s) {
-  if (s.bctx.rings == &s.level_rings) s.bctx.rings = nullptr;
-  RingTable().swap(s.level_rings);
-}
-
 // Prepares the per-level analysis on the current mesh (ct must be valid).
 void analyse(State& s, Mesh& m, const RefineOptions& o, bool need_theta) {
-  drop_level_rings(s);
   s.bctx.mesh = &m;
   s.bctx.ct = &s.ct;
   s.bctx.sharp = &s.sharp;
@@ -1123,7 +1116,9 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
     std::vector<StencilTerm> terms;
     apply_stencils(m, s.bctx, edges.data() + b, e - b, nv + int32_t(b), terms);
   }, 256);
-  drop_level_rings(s);  // the level's connectivity changes below
+  // The level's rings go: its connectivity changes below (State::level_rings).
+  if (s.bctx.rings == &s.level_rings) s.bctx.rings = nullptr;
+  RingTable().swap(s.level_rings);
   if (wedges) {
     const int32_t first = m.num_wedges();
     grow_wedges(m, next_w);

@@ -947,6 +947,16 @@ TEST(Refine, WideRoutinesGiveTheSameMesh) {
   EXPECT_GE(plain, 1);
 }
 
+// |in| refined with hooks |a| and with hooks |b|: true when both give the
+// same mesh, bit for bit, after as many levels; the statistics in |sa|, |sb|.
+bool refines_alike(const Mesh& in, const RefineOptions& o, const RefineHooks& a, const RefineHooks& b,
+                   RefineStats& sa, RefineStats& sb) {
+  Mesh ma = in, mb = in;
+  refine_mesh(ma, o, a, &sa);
+  refine_mesh(mb, o, b, &sb);
+  return same_mesh(ma, mb) && sa.levels.size() == sb.levels.size();
+}
+
 // Adaptive levels carry the angles and deviations of edges no changed face
 // touches; the result must be what computing them again gives, bit for bit,
 // with every option that feeds the stencils (creases, tension, greens kept
@@ -962,13 +972,10 @@ TEST(Refine, CarriedAnglesAndDeviationsAreTheRecomputedOnes) {
         RefineOptions o = opts(Mode::kIteas, 3);
         if (variant == 1) { o.crease_angle = 30; o.tension = 0.03; }
         if (variant == 2) { o.threshold_scope = Scope::kLevel; o.threshold.kind = ThresholdSpec::Kind::kMedian; }
-        Mesh carried = in, fresh = in;
         RefineStats st_carried, st_fresh;
-        RefineHooks h;
-        refine_mesh(carried, o, h, &st_carried);
-        h.carry = false;
-        refine_mesh(fresh, o, h, &st_fresh);
-        const bool same = same_mesh(carried, fresh) && st_carried.levels.size() == st_fresh.levels.size();
+        RefineHooks fresh;
+        fresh.carry = false;
+        const bool same = refines_alike(in, o, RefineHooks(), fresh, st_carried, st_fresh);
         EXPECT_TRUE(same) << c.name << " doubled " << doubled << " variant " << variant;
         for (size_t l = 0; same && l < st_carried.levels.size(); ++l) {
           EXPECT_EQ(st_carried.levels[l].faces_within_tolerance, st_fresh.levels[l].faces_within_tolerance) << c.name;
@@ -997,13 +1004,10 @@ TEST(Refine, RenumberedTablesRefineAsFullBuildsDo) {
       for (int variant = 0; variant < 2; ++variant) {
         RefineOptions o = opts(Mode::kIteas, 3);
         if (variant == 1) { o.crease_angle = 30; o.max_triangles = 2 * int64_t(in.num_faces()); }
-        Mesh renumbered = in, built = in;
         RefineStats st_renumbered, st_built;
-        RefineHooks h;
-        refine_mesh(renumbered, o, h, &st_renumbered);
-        h.incremental_table = false;
-        refine_mesh(built, o, h, &st_built);
-        bool same = same_mesh(renumbered, built) && st_renumbered.levels.size() == st_built.levels.size();
+        RefineHooks built;
+        built.incremental_table = false;
+        bool same = refines_alike(in, o, RefineHooks(), built, st_renumbered, st_built);
         for (size_t l = 0; same && l < st_built.levels.size(); ++l)
           same = st_renumbered.levels[l].mean_theta_after == st_built.levels[l].mean_theta_after &&
                  st_renumbered.levels[l].faces_selected == st_built.levels[l].faces_selected;
@@ -1033,14 +1037,12 @@ TEST(Refine, LevelRingsRefineAsTheWalksDo) {
       if (variant == 1) { o.crease_angle = 30; o.tension = 0.03; }
       if (variant == 2) o.threads = 2;
       for (const bool carry : {true, false}) {
-        Mesh read = c.mesh, walked = c.mesh;
         RefineStats st_read, st_walked;
-        RefineHooks h;
-        h.carry = carry;
-        refine_mesh(read, o, h, &st_read);
-        h.level_rings = false;
-        refine_mesh(walked, o, h, &st_walked);
-        bool same = same_mesh(read, walked) && st_read.levels.size() == st_walked.levels.size();
+        RefineHooks read;
+        read.carry = carry;
+        RefineHooks walked = read;
+        walked.level_rings = false;
+        bool same = refines_alike(c.mesh, o, read, walked, st_read, st_walked);
         for (size_t l = 0; same && l < st_walked.levels.size(); ++l)
           same = st_read.levels[l].faces_selected == st_walked.levels[l].faces_selected &&
                  st_read.levels[l].green_splits == st_walked.levels[l].green_splits &&
