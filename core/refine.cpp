@@ -1505,25 +1505,45 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     State::Carried& carried = s.carried;
     const bool reuse = carried.valid && !carried.deviation.empty();
     const int32_t* cv = m.corner_vertex.data();
-    note_peak(s, m, vbytes(dev) + vbytes(verdict));
-    // Corners whose deviation is carried.
+    // Per face, which of its corners' edges this level measures (bit k:
+    // corner 3f + k): the edge's first corner (the smaller one, or a
+    // boundary's), with no deviation carried, beside a face that needs one.
+    // Listed here, where the carried deviations are copied, so that the pass
+    // below skips the faces with nothing to measure (after the first levels
+    // nearly all) instead of testing every corner, and no thread reads what
+    // another writes. Carried corners are counted (measured).
+    std::vector<uint8_t> todo(nf);
+    note_peak(s, m, vbytes(dev) + vbytes(verdict) + vbytes(todo));
     std::atomic<int64_t> measured{0};
-    if (reuse) {
-      // The angles' rule (CarriedAngles), a face at a time.
-      const CarriedAngles edges = carried.edges();
-      const float* old = carried.deviation.data();
-      float* out = dev.data();
+    {
+      // (The angles' rule, CarriedAngles, a face at a time.)
+      const CarriedAngles edges = reuse ? carried.edges() : CarriedAngles();
+      const float* old = reuse ? carried.deviation.data() : nullptr;
       parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
+        float* out = dev.data();
+        const uint8_t* vd = verdict.data();
+        uint8_t* list = todo.data();
         int64_t n = 0;
         for (int64_t f = b; f < e; ++f) {
-          bool kept[3];
-          const int64_t from = edges.carried_corners(cv, f, kept);
+          bool kept[3] = {false, false, false};
+          const int64_t from = reuse ? edges.carried_corners(cv, f, kept) : -1;
+          unsigned bits = 0;
           for (int k = 0; k < 3; ++k) {
-            if (!kept[k]) continue;  // (from is -1 for a face not kept)
-            const float d = old[3 * from + k];
-            out[3 * f + k] = d;
-            n += d >= 0.0f;
+            const int32_t c = int32_t(3 * f + k);
+            if (kept[k]) {  // (from is -1 for a face not kept)
+              const float d = old[3 * from + k];
+              out[c] = d;
+              if (d >= 0.0f) { ++n; continue; }
+            }
+            // Without a branch: which uncarried corners are their edge's
+            // first and need a deviation follows no pattern. (At a boundary
+            // the other face is c's own.)
+            const int32_t oc = opp[c];
+            const unsigned first = unsigned(oc < 0) | unsigned(oc > c);
+            const unsigned need = unsigned(vd[f] >= kJudgeTolerance) | unsigned(vd[(oc < 0 ? c : oc) / 3] >= kJudgeTolerance);
+            bits |= (first & need) << k;
           }
+          list[f] = uint8_t(bits);
         }
         measured.fetch_add(n, std::memory_order_relaxed);
       }, 512);
@@ -1537,12 +1557,14 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
     if (s.level_rings_on && 2 * measured.load() <= nc) {
       build_level_rings(m, s.ct, s.bctx.vclass, &s.green, s.level_rings, s.threads, s.bctx.wide);
       s.bctx.rings = &s.level_rings;
-      note_peak(s, m, vbytes(dev) + vbytes(verdict));
+      note_peak(s, m, vbytes(dev) + vbytes(verdict) + vbytes(todo));
     }
-    parallel_for(nc, s.threads, [&](int64_t b, int64_t e) {
+    parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
       // A block of edges at a time: their Butterfly points in one call
       // (as the data pass makes them), their faces' normals in another
-      // (vectorised), then their deviations.
+      // (vectorised), then their deviations. Each edge is measured by the
+      // thread of the face listing it, which writes both its corners (no
+      // other thread reads them in this pass).
       constexpr int kBlock = 256;
       int32_t list[kBlock], faces[2 * kBlock];
       float points[3 * kBlock];
@@ -1557,43 +1579,31 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
           faces[2 * i + 1] = oc >= 0 ? oc / 3 : c / 3;  // (at a boundary, not read)
         }
         face_normals(m, faces, 2 * n, nx, ny, nz);
+        float* const dv = dev.data();
         for (int i = 0; i < n; ++i) {
           const int32_t c = list[i], oc = opp[c];
           const double f1[3] = {nx[2 * i], ny[2 * i], nz[2 * i]};
           const double f2[3] = {nx[2 * i + 1], ny[2 * i + 1], nz[2 * i + 1]};
-          float d = edge_deviation(m, c, &points[3 * i], f1, oc >= 0 ? f2 : nullptr);
-          dev[c] = d;
-          if (oc >= 0) __atomic_store(&dev[oc], &d, __ATOMIC_RELAXED);
+          const float d = edge_deviation(m, c, &points[3 * i], f1, oc >= 0 ? f2 : nullptr);
+          dv[c] = d;
+          if (oc >= 0) dv[oc] = d;
         }
         n = 0;
       };
-      float* const dv = dev.data();
-      const uint8_t* const vd = verdict.data();
-      for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
-        // The carried test first: after the first levels nearly every edge
-        // is carried, and the test then costs no mispredicted branch (whether
-        // a corner is its edge's first follows no pattern). Both corners of
-        // a carried edge are carried, with the same deviation (CarriedAngles),
-        // so the corner's own tells. The second corner of an edge whose
-        // first lies in another thread's range is written by that thread
-        // while this one may test it (and pass over it either way, as not
-        // its edge's first): both accesses are relaxed atomic (plain moves
-        // on x86), so no data race.
-        float own;
-        __atomic_load(&dv[c], &own, __ATOMIC_RELAXED);
-        if (own >= 0.0f) continue;
-        // Listed without a branch: which uncarried edges are their edge's
-        // first and need a deviation follows no pattern.
-        const int32_t oc = opp[c];
-        const int first = int(oc < 0) | int(oc > c);
-        // (At a boundary the other face is c's own.)
-        const int need = int(vd[c / 3] >= kJudgeTolerance) | int(vd[(oc < 0 ? c : oc) / 3] >= kJudgeTolerance);
-        list[n] = c;
-        n += first & need;
-        if (n == kBlock) flush();
+      const uint8_t* const listed = todo.data();
+      for (int32_t f = int32_t(b); f < int32_t(e); ++f) {
+        const unsigned bits = listed[f];
+        if (bits == 0) continue;  // after the first levels nearly every face
+        // Room for a face's three stores without a branch (the spare ones
+        // are written over by the next entries).
+        if (n > kBlock - 3) flush();
+        for (int k = 0; k < 3; ++k) {
+          list[n] = 3 * f + k;
+          n += int(bits >> k & 1);
+        }
       }
       flush();
-    }, 1536);
+    }, 512);
     parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
       const float* d3 = dev.data();
       uint8_t* out = verdict.data();
