@@ -813,16 +813,18 @@ namespace {
 // of the block [f0, f1)) is listed as the offsets of its faces' normals in
 // the block's cache: 3 (c / 3 - f0) in |near_a|, 3 (opp[c] / 3 - f0) in
 // |near_b|. One whose other face lies at or after f1 goes to |others| as its
-// corner. Returns the first corner not looked at.
-__attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t* opp, int32_t c, int32_t end,
-                                                                   int32_t f0, int32_t f1, int32_t* near_a,
-                                                                   int32_t* near_b, int& n_near, int near_room,
-                                                                   int32_t* others, int& n_others, int others_room) {
+// corner. |opp| holds the opposites from corner |base| on. Returns the first
+// corner not looked at.
+__attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t* opp, int32_t base, int32_t c,
+                                                                   int32_t end, int32_t f0, int32_t f1,
+                                                                   int32_t* near_a, int32_t* near_b, int& n_near,
+                                                                   int near_room, int32_t* others, int& n_others,
+                                                                   int others_room) {
   const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512i past = _mm512_set1_epi32(3 * f1), first = _mm512_set1_epi32(f0);
   for (; c + 16 <= end && n_near + 16 <= near_room && n_others + 16 <= others_room; c += 16) {
     const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
-    const __m512i d = _mm512_loadu_si512(opp + c);
+    const __m512i d = _mm512_loadu_si512(opp + (c - base));
     const __mmask16 edge = _mm512_cmpgt_epi32_mask(d, at);  // (a boundary's -1 is not)
     const __mmask16 near = _mm512_mask_cmplt_epi32_mask(edge, d, past);
     const __mmask16 later = edge & __mmask16(~near);
@@ -883,8 +885,18 @@ __attribute__((target("avx512f"))) void gather_block_normals_avx512(const float*
 }  // namespace
 #endif
 
-AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
-                              double threshold, double exclude, int threads, QualitySummary* quality) {
+namespace {
+// Where summarize's edges find their other corner: every corner's opposite
+// (|all|), or a uniform split's parent's (|parent|, |parent_corners|), the
+// children's made for a block of faces at a time (split_opposites).
+struct OppositeSource {
+  const int32_t* all = nullptr;
+  const int32_t* parent = nullptr;
+  int64_t parent_corners = 0;
+};
+
+AngleSummary summarize(const Mesh& mesh, const OppositeSource& source, const Array<float>* theta, double threshold,
+                       double exclude, int threads, QualitySummary* quality) {
   // The sum of the angles is kept exactly (AngleTally). Counts, the
   // maximum and an exact sum do not depend on the order in which they are
   // gathered, so each piece of the loop adds its own into the total under a
@@ -896,7 +908,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   // a parent's children together), one whose other face is in another piece
   // computes that face's normal on the spot. Memory: O(threads) for the
   // blocks, 16 bytes per waiting edge.
-  const int32_t nc = ct.num_corners();
+  const int64_t nc = 3 * int64_t(mesh.num_faces());
   constexpr int64_t kFaces = 8192;
   const int64_t nf = nc / 3;
   std::mutex mutex;
@@ -967,7 +979,9 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     float* soa[6] = {};
     if (!theta)
       for (int j = 0; j < 6; ++j) soa[j] = gathered.data() + j * kBlock;
-    const int32_t* opp = ct.opposites().data();
+    // A block's opposites: the table's, or the children's of its parents
+    // (from corner |base| on).
+    Array<int32_t> split(source.parent ? 12 * ((std::min(kFaces, e - b) + 3) / 4 + 1) : 0);
     // An edge whose other face lies in a later block of this piece waits for
     // that block, with its first face's normal (the other face's normal,
     // computed on the spot, cost several cache misses an edge, and about 6 %
@@ -983,6 +997,14 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
     auto count = [&](const float* angles, int n) { count_into(tally, angles, n); };
     for (int64_t f0 = b; f0 < e; f0 += kFaces) {
       const int64_t f1 = std::min(e, f0 + kFaces);
+      const int32_t* opp = source.all;
+      int32_t base = 0;
+      if (source.parent) {
+        const int64_t p0 = f0 / 4, p1 = (f1 + 3) / 4;
+        split_opposites(source.parent, source.parent_corners, p0, p1, split.data(), true);
+        opp = split.data();
+        base = int32_t(12 * p0);
+      }
       if (theta) {
         // Each edge at its smaller corner (not at a boundary's -1), listed
         // without a branch: which corner is an edge's first follows no pattern.
@@ -990,7 +1012,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         int n = 0;
         for (int32_t c = int32_t(3 * f0); c < int32_t(3 * f1); ++c) {
           ts[n] = th[c];
-          n += opp[c] > c;
+          n += opp[c - base] > c;
           if (n == kBlock) {
             count(ts, n);
             n = 0;
@@ -1064,11 +1086,11 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
         int32_t near_a[kBlock], near_b[kBlock], others[256];
         int n_near = 0, n_others = 0;
         for (;;) {
-          c = list_block_edges_avx512(opp, c, c_end, int32_t(h0), int32_t(h1), near_a, near_b, n_near, kBlock,
-                                      others, n_others, 256);
+          c = list_block_edges_avx512(opp, base, c, c_end, int32_t(h0), int32_t(h1), near_a, near_b, n_near,
+                                      kBlock, others, n_others, 256);
           const bool last = c + 16 > c_end;
           if (last || n_others + 16 > 256) {
-            for (int i = 0; i < n_others; ++i) edge(others[i], opp[others[i]]);
+            for (int i = 0; i < n_others; ++i) edge(others[i], opp[others[i] - base]);
             n_others = 0;
           }
           if (last || n_near + 16 > kBlock) {
@@ -1083,7 +1105,7 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
       }
 #endif
       for (; c < c_end; ++c) {
-        const int32_t d = opp[c];
+        const int32_t d = opp[c - base];
         if (d < c) continue;
         edge(c, d);
       }
@@ -1101,6 +1123,22 @@ AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Arr
   for (int k = 0; k < AngleTally::kBins; ++k) total.histogram[k] = all.hist[k];
   total.mean = total.edges ? double(all.sum) / AngleTally::kUnits / double(total.edges) : 0;
   return total;
+}
+}  // namespace
+
+AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
+                              double threshold, double exclude, int threads, QualitySummary* quality) {
+  OppositeSource source;
+  source.all = ct.opposites().data();
+  return summarize(mesh, source, theta, threshold, exclude, threads, quality);
+}
+
+AngleSummary summarize_split_angles(const Mesh& children, const Array<int32_t>& parent_opposites, double threshold,
+                                    double exclude, int threads, QualitySummary* quality) {
+  OppositeSource source;
+  source.parent = parent_opposites.data();
+  source.parent_corners = int64_t(parent_opposites.size());
+  return summarize(children, source, nullptr, threshold, exclude, threads, quality);
 }
 
 std::string ThresholdSpec::text() const {

@@ -75,6 +75,14 @@ struct QualitySummary;
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude_at_or_above = 0, int threads = 1,
                               QualitySummary* quality = nullptr);
+// The same summary (angles from the faces' normals) of a uniform split's
+// children (face f's children are 4f..4f+3, as uniform_level makes them)
+// whose own corner table is not made: their opposites come from the
+// parent's, |parent_opposites|, a block of faces at a time (split_opposites).
+// Equal to summarize_angles on the children's table.
+AngleSummary summarize_split_angles(const Mesh& children, const Array<int32_t>& parent_opposites, double threshold,
+                                    double exclude_at_or_above = 0, int threads = 1,
+                                    QualitySummary* quality = nullptr);
 
 // The threshold statistic: "mean", "median", "pNN" or a number of degrees.
 struct ThresholdSpec {

@@ -694,6 +694,98 @@ TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, 
 
 #if ITEAS_X86_FEATURES
 namespace {
+// split_opposites four faces at a time: each corner's opposite d as 12 (d / 3)
+// plus the child corner its half-edges land on (a table by d mod 3), -1 at
+// the boundary; the 48 opposites picked from those two registers by three
+// fixed permutations, the inner edges' (the face's own children) blended
+// in. Returns the first face left to the caller.
+struct OppositePick {
+  alignas(64) int32_t idx[3][16];    // from A (0-15) or C (16-31): see kOppositeOf
+  alignas(64) int32_t inner[3][16];  // 12 t + the inner corner where |inner_mask| is set
+  uint16_t inner_mask[3];
+  constexpr OppositePick() : idx(), inner(), inner_mask() {
+    // Child corner j of a face: the inner edge's corner (>= 0), else -1 - k
+    // for the first half (A) or -4 - k for the second half (C) of the parent
+    // edge opposite corner k.
+    constexpr int kOppositeOf[12] = {9, -4 - 1, -1 - 2, -1 - 0, 10, -4 - 2, -4 - 0, -1 - 1, 11, 0, 4, 8};
+    for (int i = 0; i < 48; ++i) {
+      const int t = i / 12, j = i % 12, o = kOppositeOf[j];
+      if (o >= 0) {
+        inner[i / 16][i % 16] = 12 * t + o;
+        inner_mask[i / 16] = uint16_t(inner_mask[i / 16] | (1u << (i % 16)));
+      } else {
+        idx[i / 16][i % 16] = o >= -3 ? 3 * t + (-1 - o) : 16 + 3 * t + (-4 - o);
+      }
+    }
+  }
+};
+constexpr OppositePick kOppositePick;
+
+__attribute__((target("avx512f"))) int64_t split_opposites_avx512(const int32_t* opp, int64_t b, int64_t e,
+                                                                   int64_t nc, int32_t* no) {
+  // 3 kPrev[l] + l and 3 kNext[l] + l for l = d mod 3 (split_opposites' tables).
+  const __m512i first_half = _mm512_setr_epi32(6, 1, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+  const __m512i second_half = _mm512_setr_epi32(3, 7, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+  const __m512i zero = _mm512_setzero_si512();
+  const __m512i minus_one = _mm512_set1_epi32(-1);
+  int64_t f = b;
+  for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
+    const __m512i d = _mm512_loadu_si512(opp + 3 * f);
+    const __mmask16 boundary = _mm512_cmplt_epi32_mask(d, zero);
+    const __m512i q = div3_epi32_avx512(d);  // (at a boundary's -1, not used)
+    const __m512i l = _mm512_sub_epi32(d, _mm512_mullo_epi32(q, _mm512_set1_epi32(3)));
+    const __m512i g12 = _mm512_mullo_epi32(q, _mm512_set1_epi32(12));
+    const __m512i a = _mm512_mask_mov_epi32(
+        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, first_half)), boundary, minus_one);
+    const __m512i c = _mm512_mask_mov_epi32(
+        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, second_half)), boundary, minus_one);
+    const __m512i base = _mm512_set1_epi32(int32_t(12 * f));
+    int32_t* out = no + 12 * (f - b);
+    for (int z = 0; z < 3; ++z) {
+      const __m512i picked = _mm512_permutex2var_epi32(a, _mm512_load_si512(kOppositePick.idx[z]), c);
+      const __m512i inner = _mm512_add_epi32(base, _mm512_load_si512(kOppositePick.inner[z]));
+      _mm512_storeu_si512(out + 16 * z, _mm512_mask_blend_epi32(kOppositePick.inner_mask[z], picked, inner));
+    }
+  }
+  return f;
+}
+
+}  // namespace
+#endif
+
+void split_opposites(const int32_t* opp, int64_t nc, int64_t f0, int64_t f1, int32_t* out, bool wide) {
+  static constexpr int kNext[3] = {1, 2, 0}, kPrev[3] = {2, 0, 1};
+  int64_t from = f0;
+#if ITEAS_X86_FEATURES
+  if (wide && cpu_has(CpuFeature::kAvx512)) from = split_opposites_avx512(opp, f0, f1, nc, out);
+#else
+  (void)wide;
+  (void)nc;
+#endif
+  for (int64_t f = from; f < f1; ++f) {
+    const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
+    int32_t* no = out + 12 * (f - f0);  // child corner base + i at no[i]
+    for (int k = 0; k < 3; ++k) {
+      // Inner edges: child k's corner k faces the centre's corner k.
+      no[3 * k + k] = base + 9 + k;
+      no[9 + k] = base + 3 * k + k;
+      // The halves of the parent edge opposite corner k lie in children
+      // k+1 and k+2 at local corner k; their twins in the neighbour's children.
+      const int32_t d = opp[p + k];
+      const int a = 3 * kNext[k] + k, c = 3 * kPrev[k] + k;
+      if (d < 0) {
+        no[a] = no[c] = -1;
+      } else {
+        const int32_t l = d % 3, g4 = 4 * (d - l);  // 12 (d / 3) = 4 (d - l)
+        no[a] = g4 + 3 * kPrev[l] + l;
+        no[c] = g4 + 3 * kNext[l] + l;
+      }
+    }
+  }
+}
+
+#if ITEAS_X86_FEATURES
+namespace {
 // count_canonical_corners (kList false) and list_canonical_corners over the
 // whole blocks of sixteen corners from |begin|: one unsigned compare of the
 // opposites against the corners' own numbers, its mask counted, and the

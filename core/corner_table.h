@@ -67,6 +67,13 @@ __attribute__((target("avx512f"), always_inline)) inline __m512i div3_epi32_avx5
 // the vertices' corners follow their corners through a level with it.
 inline int32_t kept_child_corner(int32_t c) { return 3 * (4 * (c / 3) + c % 3) + c % 3; }
 
+// The children's opposites of a uniform split (uniform_level's numbering:
+// face f's children are 4f + j, child j < 3 keeping the parent's corner j,
+// child 3 the centre) of parent faces [f0, f1), from the parent's opposites
+// |opp| (|nc| corners) alone: out[i] is child corner 12 f0 + i's. With
+// |wide|, four faces at a time where the processor has AVX-512.
+void split_opposites(const int32_t* opp, int64_t nc, int64_t f0, int64_t f1, int32_t* out, bool wide);
+
 // Bit i set when p[i] == x, for i < n <= 8. Reads 8 entries whatever n is (the
 // caller pads its arrays): one SSE2 compare instead of a branch per entry,
 // whose outcome varies from call to call and was mispredicted.

@@ -141,6 +141,9 @@ struct State {
   // (select_faces, close_selection's green test, adaptive_level).
   RingTable level_rings;
   const std::vector<uint8_t> no_flags{};  // empty: no sharp flags, no green pairs (ButterflyContext)
+  // A last uniform level with statistics: the parent level's opposites, the
+  // children's table not made (uniform_level); empty otherwise.
+  Array<int32_t> split_from;
   int32_t ring_limit = 0;
   int threads = 1;
   int64_t peak = 0;
@@ -196,7 +199,7 @@ void note_peak(State& s, const Mesh& m, int64_t extra) {
                     vbytes(s.rings.block) + vbytes(s.rings.side) + vbytes(s.level_rings.kept) +
                     vbytes(s.level_rings.block) +
                     vbytes(s.carried.theta) + vbytes(s.carried.deviation) + vbytes(s.carried.kept_from) +
-                    vbytes(s.carried.touched) + extra;
+                    vbytes(s.carried.touched) + vbytes(s.split_from) + extra;
   s.peak = std::max(s.peak, b);
 }
 
@@ -320,62 +323,6 @@ __attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, c
   }
   return f;
 }
-// The children's opposites of faces [b, e) of a uniform level (see
-// uniform_level) four faces at a time: each corner's opposite d as 12 (d / 3)
-// plus the child corner its half-edges land on (a table by d mod 3), -1 at
-// the boundary; the 48 opposites picked from those two registers by three
-// fixed permutations, the inner edges' (the face's own children) blended
-// in. Returns the first face left to the caller.
-struct OppositePick {
-  alignas(64) int32_t idx[3][16];    // from A (0-15) or C (16-31): see kOppositeOf
-  alignas(64) int32_t inner[3][16];  // 12 t + the inner corner where |inner_mask| is set
-  uint16_t inner_mask[3];
-  constexpr OppositePick() : idx(), inner(), inner_mask() {
-    // Child corner j of a face: the inner edge's corner (>= 0), else -1 - k
-    // for the first half (A) or -4 - k for the second half (C) of the parent
-    // edge opposite corner k.
-    constexpr int kOppositeOf[12] = {9, -4 - 1, -1 - 2, -1 - 0, 10, -4 - 2, -4 - 0, -1 - 1, 11, 0, 4, 8};
-    for (int i = 0; i < 48; ++i) {
-      const int t = i / 12, j = i % 12, o = kOppositeOf[j];
-      if (o >= 0) {
-        inner[i / 16][i % 16] = 12 * t + o;
-        inner_mask[i / 16] = uint16_t(inner_mask[i / 16] | (1u << (i % 16)));
-      } else {
-        idx[i / 16][i % 16] = o >= -3 ? 3 * t + (-1 - o) : 16 + 3 * t + (-4 - o);
-      }
-    }
-  }
-};
-constexpr OppositePick kOppositePick;
-
-__attribute__((target("avx512f"))) int64_t child_opposites_avx512(const int32_t* opp, int64_t b, int64_t e,
-                                                                   int64_t nc, int32_t* no) {
-  // 3 kPrev[l] + l and 3 kNext[l] + l for l = d mod 3 (uniform_level's tables).
-  const __m512i first_half = _mm512_setr_epi32(6, 1, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
-  const __m512i second_half = _mm512_setr_epi32(3, 7, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
-  const __m512i zero = _mm512_setzero_si512();
-  const __m512i minus_one = _mm512_set1_epi32(-1);
-  int64_t f = b;
-  for (; f + 4 <= e && 3 * f + 16 <= nc; f += 4) {
-    const __m512i d = _mm512_loadu_si512(opp + 3 * f);
-    const __mmask16 boundary = _mm512_cmplt_epi32_mask(d, zero);
-    const __m512i q = div3_epi32_avx512(d);  // (at a boundary's -1, not used)
-    const __m512i l = _mm512_sub_epi32(d, _mm512_mullo_epi32(q, _mm512_set1_epi32(3)));
-    const __m512i g12 = _mm512_mullo_epi32(q, _mm512_set1_epi32(12));
-    const __m512i a = _mm512_mask_mov_epi32(
-        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, first_half)), boundary, minus_one);
-    const __m512i c = _mm512_mask_mov_epi32(
-        _mm512_add_epi32(g12, _mm512_maskz_permutexvar_epi32(0xFFFF, l, second_half)), boundary, minus_one);
-    const __m512i base = _mm512_set1_epi32(int32_t(12 * f));
-    int32_t* out = no + 12 * f;
-    for (int z = 0; z < 3; ++z) {
-      const __m512i picked = _mm512_permutex2var_epi32(a, _mm512_load_si512(kOppositePick.idx[z]), c);
-      const __m512i inner = _mm512_add_epi32(base, _mm512_load_si512(kOppositePick.inner[z]));
-      _mm512_storeu_si512(out + 16 * z, _mm512_mask_blend_epi32(kOppositePick.inner_mask[z], picked, inner));
-    }
-  }
-  return f;
-}
 #endif
 
 // ---------------------------------------------------------------------------
@@ -384,10 +331,12 @@ __attribute__((target("avx512f"))) int64_t child_opposites_avx512(const int32_t*
 // adjacency is rebuilt. Children of face f are 4f+j: child j (< 3) keeps
 // parent vertex j at local corner j, child 3 is the centre; the half of the
 // parent edge opposite corner k next to vertex k+1 (k+2) is the edge opposite
-// local corner k of child k+1 (k+2). Without |connectivity| (the last level,
-// no statistics to follow) the children's corner table and vertex classes are
-// not made: nothing would read them.
-void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity, bool more_levels) {
+// local corner k of child k+1 (k+2). Without |connectivity| (the last level)
+// the children's corner table and vertex classes are not made: nothing would
+// read them, and the statistics, with |split_summary|, take the children's
+// opposites from the parent's (State::split_from), a block at a time.
+void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity, bool more_levels,
+                   bool split_summary) {
   const int32_t nf = m.num_faces(), nv = m.num_vertices();
   const int64_t nc = 3 * int64_t(nf);
   const int32_t* opp = s.ct.opposites().data();
@@ -586,38 +535,17 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
 
   // Children's opposites from the parent's alone.
   Array<int32_t> nopp(connectivity ? 12 * size_t(nf) : 0);
-  static constexpr int kNext[3] = {1, 2, 0}, kPrev[3] = {2, 0, 1};
   if (connectivity) parallel_for(nf, s.threads, [&](int64_t b, int64_t e) {
-    int32_t* no = nopp.data();
-    int64_t from = b;
-#if ITEAS_X86_FEATURES
-    if (s.bctx.wide && cpu_has(CpuFeature::kAvx512)) from = child_opposites_avx512(opp, b, e, nc, no);
-#endif
-    for (int64_t f = from; f < e; ++f) {
-      const int32_t p = int32_t(3 * f), base = int32_t(12 * f);  // first corner of child 0
-      for (int k = 0; k < 3; ++k) {
-        // Inner edges: child k's corner k faces the centre's corner k.
-        no[base + 3 * k + k] = base + 9 + k;
-        no[base + 9 + k] = base + 3 * k + k;
-        // The halves of the parent edge opposite corner k lie in children
-        // k+1 and k+2 at local corner k; their twins in the neighbour's children.
-        const int32_t d = opp[p + k];
-        const int32_t a = base + 3 * kNext[k] + k, c = base + 3 * kPrev[k] + k;
-        if (d < 0) {
-          no[a] = no[c] = -1;
-        } else {
-          const int32_t l = d % 3, g4 = 4 * (d - l);  // 12 (d / 3) = 4 (d - l)
-          no[a] = g4 + 3 * kPrev[l] + l;
-          no[c] = g4 + 3 * kNext[l] + l;
-        }
-      }
-    }
+    split_opposites(opp, nc, b, e, nopp.data() + 12 * b, s.bctx.wide);
   }, kFaceGrain);
   note_peak(s, m, vbytes(nopp));
   if (connectivity) {
     s.ct.opposites().swap(nopp);
     Array<int32_t>().swap(nopp);
   } else {
+    // The parent's opposites kept for the statistics, which make the
+    // children's a block at a time (summarize_split_angles).
+    if (split_summary) s.split_from.swap(s.ct.opposites());
     s.ct = CornerTable();  // stale: no use may follow
   }
   Array<float>().swap(s.theta);
@@ -1758,6 +1686,13 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   }
   stats.threshold = T_input;
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);
+  // The summary of the mesh as it is: from the angles when current, else
+  // from the faces' normals, through the corner table or, after a last
+  // uniform level that made none, the parent's (State::split_from).
+  auto summary = [&](double T, QualitySummary* quality) {
+    if (!s.split_from.empty()) return summarize_split_angles(m, s.split_from, T, crease, s.threads, quality);
+    return summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, T, crease, s.threads, quality);
+  };
   if (adaptive) {
     s.stall = effective_stall_ratio(o);
     const double diagonal = bounding_box(m).diagonal();
@@ -1794,7 +1729,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path) {
-        uniform_level(s, m, ls, crease <= 0, level < o.levels || statistics, level < o.levels);
+        uniform_level(s, m, ls, crease <= 0, level < o.levels, level < o.levels, statistics);
       } else {
         selected.resize(m.num_faces());
         std::iota(selected.begin(), selected.end(), 0);
@@ -1855,10 +1790,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
     // last when the levels asked for are done or the budget leaves no room
     // for another; a level after it (none runs) would clear the flag.
     const bool fuse = statistics && !s.theta_current && (level == o.levels || no_room());
-    const AngleSummary after =
-        statistics ? summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, ls.threshold, crease, s.threads,
-                                      fuse ? &fused_quality : nullptr)
-                   : AngleSummary();
+    const AngleSummary after = statistics ? summary(ls.threshold, fuse ? &fused_quality : nullptr) : AngleSummary();
     quality_done = fuse;
     last_after = after;
     ls.triangles_after = m.num_faces();
@@ -1880,7 +1812,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   if (!stats.levels.empty() && stats.levels.back().threshold == stats.threshold && last_after.edges > 0)
     stats.after = last_after;
   else if (statistics)
-    stats.after = summarize_angles(m, s.ct, s.theta_current ? &s.theta : nullptr, stats.threshold, crease, s.threads);
+    stats.after = summary(stats.threshold, nullptr);
   if (statistics) stats.quality_after = quality_done ? fused_quality : triangle_quality(m, s.threads);
   stats.triangles_out = m.num_faces();
   stats.vertices_out = m.wedge_count();

@@ -684,6 +684,72 @@ TEST(Angles, SummaryWithTheQualityGivesBothUnchanged) {
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 8u : 26u);
 }
 
+// A last uniform level with statistics makes no corner table of its own:
+// its summary takes the children's opposites from the parent's, a block of
+// faces at a time (summarize_split_angles). The same summary and quality as
+// the children's own table gives, on one to three threads, with and without
+// the quality, with the edges listed sixteen at a time or one at a time; and
+// split_opposites over any range of parents is that range of the whole.
+TEST(Angles, SplitSummaryIsTheChildrenTablesSummary) {
+  const std::vector<test::NamedMesh> meshes = summary_meshes();
+  int compared = 0;
+  for (const test::NamedMesh& c : meshes) {
+    Mesh parent = c.mesh;
+    CornerTable pt;
+    const TopologyReport r = pt.build(parent, false, 1);
+    if (r.split_vertices || r.non_manifold_edges || r.orientation_conflicts) continue;
+    Mesh children = parent;
+    RefineOptions o;
+    o.mode = Mode::kUniform;
+    o.levels = 1;
+    RefineHooks h;
+    h.statistics = false;
+    h.spatial_order = false;
+    RefineStats st;
+    refine_mesh(children, o, h, &st);
+    ASSERT_EQ(children.num_faces(), 4 * parent.num_faces()) << c.name;
+    Mesh table_of = children;
+    CornerTable ct;
+    ct.build(table_of, false, 1);
+    // The arithmetic's opposites are the built table's, whole and by ranges.
+    const int64_t pf = parent.num_faces();
+    Array<int32_t> whole(12 * size_t(pf)), part(12 * size_t(pf));
+    for (const bool wide : {true, false}) {
+      split_opposites(pt.opposites().data(), 3 * pf, 0, pf, whole.data(), wide);
+      const int64_t cut = pf / 3 + 1;
+      split_opposites(pt.opposites().data(), 3 * pf, 0, cut, part.data(), wide);
+      split_opposites(pt.opposites().data(), 3 * pf, cut, pf, part.data() + 12 * cut, wide);
+      EXPECT_TRUE(std::equal(whole.begin(), whole.end(), ct.opposites().begin())) << c.name << " wide " << wide;
+      EXPECT_TRUE(std::equal(part.begin(), part.end(), ct.opposites().begin())) << c.name << " wide " << wide;
+    }
+    for (int threads : {1, 2, 3}) {
+      for (const bool listed16 : {true, false}) {
+#if ITEAS_X86_FEATURES
+        if (!listed16) cpu_feature_cap() = int(CpuFeature::kAvx2);
+#else
+        if (listed16) continue;
+#endif
+        const std::string at = c.name + ", " + std::to_string(threads) + " threads" + (listed16 ? "" : ", capped");
+        QualitySummary q_table, q_split;
+        q_split.min_angle = q_split.p1_angle = -1;
+        const AngleSummary table = summarize_angles(children, ct, nullptr, 20.0, 30.0, threads, &q_table);
+        const AngleSummary split = summarize_split_angles(children, pt.opposites(), 20.0, 30.0, threads, &q_split);
+        const AngleSummary split_alone = summarize_split_angles(children, pt.opposites(), 20.0, 30.0, threads);
+#if ITEAS_X86_FEATURES
+        cpu_feature_cap() = int(CpuFeature::kAvx512);
+#endif
+        expect_same_summary(split, table, at);
+        expect_same_summary(split_alone, table, at + ", without the quality");
+        EXPECT_EQ(q_split.min_angle, q_table.min_angle) << at;
+        EXPECT_EQ(q_split.p1_angle, q_table.p1_angle) << at;
+        EXPECT_GT(split.edges, 0) << at;
+      }
+    }
+    ++compared;
+  }
+  EXPECT_GE(compared, test::corpus_dir().empty() ? 6 : 20);
+}
+
 // Where the processor has AVX-512, the summary lists a block's edges sixteen
 // corners at a time and gathers their normals; capped at AVX2 it takes them
 // one corner at a time. The same summary either way (and the same quality),
