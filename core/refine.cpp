@@ -190,6 +190,7 @@ struct State {
   bool carry = true;  // RefineHooks::carry
   bool incremental_table = true;  // RefineHooks::incremental_table
   bool level_rings_on = true;     // RefineHooks::level_rings
+  const std::function<void(const float*, int64_t)>* deviations_seen = nullptr;  // RefineHooks::deviations
 };
 
 void note_peak(State& s, const Mesh& m, int64_t extra) {
@@ -1546,6 +1547,7 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         out[f] = uint8_t(v + ((tol | flat) * (judged - v)));
       }
     }, 512);
+    if (s.deviations_seen && *s.deviations_seen) (*s.deviations_seen)(dev.data(), nc);
     carried.deviation.swap(dev);
   } else {
     std::vector<float>().swap(s.carried.deviation);
@@ -1667,6 +1669,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   s.carry = hooks.carry;
   s.incremental_table = hooks.incremental_table;
   s.level_rings_on = hooks.level_rings;
+  s.deviations_seen = &hooks.deviations;
   stats.ms_topology = now() - t0;
   const double crease = o.crease_angle;
   const bool adaptive = o.mode != Mode::kUniform;

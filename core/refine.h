@@ -73,6 +73,11 @@ struct RefineHooks {
   // on every adaptive level instead of reading the level's rings
   // (build_level_rings) where most edges are measured afresh.
   bool level_rings = true;
+  // Testing: called on each adaptive level whose selection measures
+  // deviations, with every corner's deviation of that level once they are
+  // made (-1: not computed, the edge's faces needing none; carried or
+  // computed afresh alike).
+  std::function<void(const float* deviation, int64_t corners)> deviations;
   // Benchmarks: false skips the smoothness and quality statistics of uniform
   // refinement (θ after each level, triangle angles before and after), to time
   // the subdivision alone. Adaptive modes need θ and compute it regardless.
