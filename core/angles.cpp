@@ -942,10 +942,14 @@ AngleSummary summarize(const Mesh& mesh, const OppositeSource& source, const Arr
   // the first pieces hold most of them. bunny-npm uniform level 1 with the
   // statistics on two threads, in a loop: 0.196 -> 0.170 ms.) Up to two
   // pieces' worth, the array takes no more than the pieces' own caches did
-  // (level 1 on two threads: peak heap growth 649 -> 625 KB); for level 2's
-  // 58,784 faces it took 448 KB more (37.9 -> 45.5 bytes an output triangle;
-  // 0.652 -> 0.510 ms), over the 40 the benchmark allows, so not there.
-  constexpr int64_t kWholeFaces = 2 * kFaces;
+  // (level 1 on two threads: peak heap growth 649 -> 625 KB). Up to 65,536
+  // faces (768 KB): level 2's 58,784 on two threads 0.617 -> 0.516-0.529 ms,
+  // its peak heap growth 27.8 -> 33.4 bytes an output triangle (under the
+  // 40 the benchmark allows since the last uniform level makes no corner
+  // table for its summary; before that, 37.9 -> 45.5). Larger levels keep
+  // the pieces (level 3's 235,136 faces would take 2.8 MB, 12 bytes an
+  // output triangle more).
+  constexpr int64_t kWholeFaces = 8 * kFaces;
   const bool whole = !theta && resolve_threads(threads) > 1 && nf > kFaces && nf <= kWholeFaces;
   Array<float> whole_normals(whole ? 3 * size_t(nf) + 1 : 0);  // one float more: read four at a time
   if (whole) {
