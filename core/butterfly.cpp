@@ -78,6 +78,16 @@ void classify_vertices(const Mesh& mesh, const CornerTable& ct, const std::vecto
 
 namespace {
 void ring_points(const Mesh& mesh, const VertexClass& vclass, RingTable& rings, int threads, bool wide);
+
+// The extraordinary rule's walk round a vertex passes over the apex corners
+// of second green children: their bisecting edge (c, m) is not in the
+// parent's ring (discount_green_apices takes it from the valence). From
+// corner x (-1: none) on, the first corner that is not such an apex.
+// (extraordinary_terms walks so; build_level_rings stores that walk.)
+inline int32_t past_green_apices(const CornerTable& ct, const uint8_t* green, int32_t x) {
+  while (x >= 0 && green[x / 3] == 2 && x % 3 == 2) x = ct.swing_right(x);
+  return x;
+}
 }  // namespace
 
 namespace {
@@ -465,13 +475,8 @@ void build_level_rings(const Mesh& mesh, const CornerTable& ct, const VertexClas
   const int32_t* cv = mesh.corner_vertex.data();
   const uint8_t* g = green && !green->empty() ? green->data() : nullptr;
   // The extraordinary rule's walk (extraordinary_terms): from a corner at v,
-  // K steps right round v, each first passing over the apex corners of
-  // second green children (their bisecting edge is not in the parent's ring).
-  auto skip = [&](int32_t x) {
-    if (g)
-      while (x >= 0 && g[x / 3] == 2 && x % 3 == 2) x = ct.swing_right(x);
-    return x;
-  };
+  // K steps right round v, each first passing over green apices.
+  auto skip = [&](int32_t x) { return g ? past_green_apices(ct, g, x) : x; };
   parallel_for(nv, threads, [&](int64_t b, int64_t e) {
     for (int64_t v = b; v < e; ++v) {
       const int32_t off = out.offset[v];
@@ -842,7 +847,7 @@ void extraordinary_terms(const View<G>& m, int32_t x0, int32_t valence, double s
   for (int j = 0; j < K; ++j) {
     // The bisecting edge (c, m) of a green pair with this vertex as apex is
     // not in the parent's ring: skip it (classify discounted it from K).
-    if (G) while (m.green_of(x) == 2 && x % 3 == 2) x = m.ct->swing_right(x);
+    if (G) x = past_green_apices(*m.ct, m.green, x);
     const double s = w ? w[j] : formula_weight(K, j);
     if (s != 0.0) out(m.cv[next_corner(x)], s * scale);
     x = m.ct->swing_right(x);

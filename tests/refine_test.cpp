@@ -8,6 +8,7 @@
 #include <iterator>
 #include <cstring>
 #include <map>
+#include <numeric>
 #include <random>
 
 #include "core/angles.h"
@@ -1076,6 +1077,109 @@ TEST(Refine, LevelRingsRefineAsTheWalksDo) {
   }
   EXPECT_GE(n, 60);
   EXPECT_EQ(differ, 0);
+}
+
+// A green pair's stencils see it as its parent (a, b, c): the walks round
+// the apex c pass over the bisecting edge (m, c), and the pair's corners at
+// m stand for a and b. Bisect one edge (a, b) of a closed mesh at a new
+// vertex m into the green pairs of both its faces (a, m, c), (m, b, c) and
+// (b, m, d), (m, a, d): every edge with an extraordinary end away from a
+// and b that the parent and the bisected mesh share (those round the apices
+// c and d among them) must get the parent's Butterfly point, from
+// fan walks and from the level's ring table (build_level_rings) alike.
+// Every edge of an icosphere in turn, so that apices of valence 5 and 6
+// both occur.
+TEST(Refine, GreenPairsAreSeenAsTheirParents) {
+  const Mesh parent = test::icosphere(2);
+  CornerTable pt;
+  {
+    Mesh copy = parent;
+    pt.build(copy, false, 1);
+  }
+  const std::vector<uint8_t> no_sharp;
+  ButterflyContext pctx;
+  pctx.mesh = &parent;
+  pctx.ct = &pt;
+  pctx.sharp = &no_sharp;
+  classify_vertices(parent, pt, no_sharp, pctx.vclass, 1, true);
+  const int32_t nc = pt.num_corners();
+  std::vector<float> parent_points(3 * size_t(nc));
+  {
+    std::vector<int32_t> all(static_cast<size_t>(nc));
+    std::iota(all.begin(), all.end(), 0);
+    butterfly_points(pctx, all.data(), nc, parent.positions.data(), parent_points.data());
+  }
+  const int32_t* pv = parent.corner_vertex.data();
+  int64_t compared = 0, apex5 = 0, ringed_apices = 0;
+  int64_t differ_walked = 0, differ_read = 0;
+  for (int32_t c0 = 0; c0 < nc; ++c0) {
+    const int32_t o0 = pt.opposite(c0);
+    if (o0 < c0) continue;  // each edge once
+    const int32_t a = pv[next_corner(c0)], b = pv[prev_corner(c0)], c = pv[c0], d = pv[o0];
+    apex5 += pctx.vclass.valence[c] == 5;
+    Mesh g;
+    g.positions = parent.positions;
+    const int32_t m = parent.num_vertices();
+    for (int k = 0; k < 3; ++k) g.positions.push_back(0.5f * (parent.positions[3 * a + k] + parent.positions[3 * b + k]));
+    std::vector<uint8_t> green;
+    for (int32_t f = 0; f < parent.num_faces(); ++f) {
+      if (f == c0 / 3 || f == o0 / 3) continue;
+      for (int k = 0; k < 3; ++k) g.corner_vertex.push_back(pv[3 * f + k]);
+      green.push_back(0);
+    }
+    for (const int32_t t : {a, m, c, m, b, c, b, m, d, m, a, d}) g.corner_vertex.push_back(t);
+    for (const uint8_t x : {1, 2, 1, 2}) green.push_back(x);
+    CornerTable gt;
+    gt.build(g, false, 1);
+    ButterflyContext gctx;
+    gctx.mesh = &g;
+    gctx.ct = &gt;
+    gctx.sharp = &no_sharp;
+    gctx.green = &green;
+    classify_vertices(g, gt, no_sharp, gctx.vclass, 1, true);
+    discount_green_apices(g, green, gctx.vclass);
+    // The parent's edges the bisected mesh has, each at the corner of the
+    // same direction (the same side) as in the parent.
+    std::map<std::pair<int32_t, int32_t>, int32_t> at;
+    for (int32_t x = 0; x < gt.num_corners(); ++x)
+      at[{g.corner_vertex[next_corner(x)], g.corner_vertex[prev_corner(x)]}] = x;
+    // (Only edges with an extraordinary end and neither end at a or b:
+    // their points are the rings' rules alone, round vertices whose rings
+    // the bisection left alone but for the apices' bisecting edges. A
+    // regular stencil's wing across (a, b), whose neighbour is split, is the
+    // parallelogram completion a + b - c by design, and a's and b's rings
+    // hold m where b and a were.)
+    std::vector<int32_t> pc, gc;
+    for (int32_t x = 0; x < nc; ++x) {
+      const int32_t u = pv[next_corner(x)], v = pv[prev_corner(x)];
+      if (pctx.vclass.valence[u] == 6 && pctx.vclass.valence[v] == 6) continue;
+      if (u == a || u == b || v == a || v == b) continue;
+      const auto it = at.find({u, v});
+      if (it == at.end()) continue;  // (a, b) and (b, a): split
+      pc.push_back(x);
+      gc.push_back(it->second);
+    }
+    std::vector<float> walked(3 * gc.size()), read(3 * gc.size());
+    butterfly_points(gctx, gc.data(), int64_t(gc.size()), g.positions.data(), walked.data());
+    RingTable rings;
+    build_level_rings(g, gt, gctx.vclass, &green, rings, 1);
+    // The table holds the extraordinary apices' rings (else the rule walks).
+    ringed_apices += pctx.vclass.valence[c] != 6 && rings.offset[c] >= 0;
+    gctx.rings = &rings;
+    butterfly_points(gctx, gc.data(), int64_t(gc.size()), g.positions.data(), read.data());
+    for (size_t i = 0; i < pc.size(); ++i)
+      for (int k = 0; k < 3; ++k) {
+        const float want = parent_points[3 * size_t(pc[i]) + k];
+        differ_walked += !(std::fabs(walked[3 * i + k] - want) <= 1e-6f);
+        differ_read += !(std::fabs(read[3 * i + k] - want) <= 1e-6f);
+      }
+    compared += int64_t(pc.size());
+  }
+  EXPECT_EQ(differ_walked, 0);
+  EXPECT_EQ(differ_read, 0);
+  EXPECT_GT(apex5, 10);  // extraordinary apices occurred
+  EXPECT_EQ(ringed_apices, apex5);
+  EXPECT_GT(compared, 10000);
 }
 
 // The statistics after adaptive levels are taken from the angles the
