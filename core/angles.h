@@ -75,6 +75,12 @@ struct QualitySummary;
 AngleSummary summarize_angles(const Mesh& mesh, const CornerTable& ct, const Array<float>* theta,
                               double threshold, double exclude_at_or_above = 0, int threads = 1,
                               QualitySummary* quality = nullptr);
+// summarize_angles(mesh, ct, &theta, threshold, exclude_at_or_above, threads).above
+// alone: the interior edges whose angle is counted and exceeds |threshold|,
+// without the rest of the tally (the summary with another threshold has the
+// other fields already).
+int64_t count_angles_above(const CornerTable& ct, const Array<float>& theta, double threshold,
+                           double exclude_at_or_above = 0, int threads = 1);
 // The same summary (angles from the faces' normals) of a uniform split's
 // children (face f's children are 4f..4f+3, as uniform_level makes them)
 // whose own corner table is not made: their opposites come from the

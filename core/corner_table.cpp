@@ -559,12 +559,25 @@ bool match_runs(bool wide, const VertexCorners& vc, int64_t begin, int64_t end, 
 
 }  // namespace
 
-TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order, bool wide) {
+TopologyReport CornerTable::build(Mesh& mesh, bool split_vertices, int threads, bool record_order, bool wide,
+                                  const std::function<void()>& beside) {
   TopologyReport report;
   const Array<int32_t>& cv = mesh.corner_vertex;
   const int32_t nc = static_cast<int32_t>(cv.size());
   VertexCorners vc;
-  vc.build(cv, mesh.num_vertices());
+  if (beside && resolve_threads(threads) > 1) {
+    // The sort as piece 0 (the caller's share), |beside| as piece 1 (the
+    // worker's, or the caller's after the sort when the worker is late).
+    parallel_for_chunks(2, 2, [&](int64_t b, int64_t e) {
+      for (int64_t k = b; k < e; ++k) {
+        if (k == 0) vc.build(cv, mesh.num_vertices());
+        else beside();
+      }
+    });
+  } else {
+    vc.build(cv, mesh.num_vertices());
+    if (beside) beside();
+  }
   opposite_.resize(nc);  // every entry is written below
 
   // Per corner c: its edge runs a = v(next c) -> b = v(prev c); its corner at

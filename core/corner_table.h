@@ -8,6 +8,7 @@
 
 #include <climits>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #if defined(__GNUC__) && defined(__x86_64__)
@@ -117,7 +118,13 @@ class CornerTable {
   // |record_order|: also keep each vertex's fan in walk order (fan_order()).
   // |wide|: runs of 3-8 corners matched in AVX2 registers where the
   // processor has AVX2; false: SSE2 only, for tests (the same table).
-  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false, bool wide = true);
+  // |beside|, if given, runs once, on another thread while this one sorts
+  // the corners by vertex (a serial step), or after it on this one when
+  // there is no other; it is done before the matching starts. It may read
+  // |mesh| (nothing writes it until then) and must not start parallel loops
+  // of more than one thread.
+  TopologyReport build(Mesh& mesh, bool split_vertices, int threads = 1, bool record_order = false, bool wide = true,
+                       const std::function<void()>& beside = nullptr);
 
   // The table of |mesh| made from this one, that of the mesh it was refined
   // from, equal to what build(mesh, false) gives: |kept_from| per face of

@@ -1662,8 +1662,15 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   stats.vertices_in = m.wedge_count();
   // The uniform path reads its first rings from the fans the table records.
   s.bctx.wide = hooks.wide;
-  stats.topology =
-      s.ct.build(m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, s.bctx.wide);
+  // On several threads, the input's triangle quality (statistics) is taken
+  // on the other one while the table sorts the corners by vertex, a serial
+  // step (it reads the positions and corners alone, which a split of
+  // non-manifold vertices, later, leaves the same for every face).
+  const bool statistics = hooks.statistics || o.mode != Mode::kUniform;
+  const bool quality_beside = statistics && s.threads > 1;
+  stats.topology = s.ct.build(
+      m, true, s.threads, o.mode == Mode::kUniform && !hooks.force_adaptive_path, s.bctx.wide,
+      quality_beside ? std::function<void()>([&] { stats.quality_before = triangle_quality(m, 1); }) : nullptr);
   s.ring_limit = m.num_vertices();
   s.input_split = stats.topology.split_vertices > 0;
   s.carry = hooks.carry;
@@ -1678,14 +1685,16 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hoo
   // Threshold and the "before" picture, on the input.
   // (Uniform refinement reports the mean θ as its T; the benchmark switch
   // skips all of it.)
-  const bool statistics = hooks.statistics || adaptive;
   double T_input = 0;
   if (statistics) {
     current_angles(s, m);  // nothing carried into the input
-    T_input = o.mode == Mode::kUniform ? summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads).mean
-                                       : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
-    stats.before = summarize_angles(m, s.ct, &s.theta, T_input, crease, s.threads);
-    stats.quality_before = triangle_quality(m, s.threads);
+    // The input's summary once: with the mean for T (uniform jobs, and the
+    // default threshold) the edges above it are then counted alone.
+    stats.before = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads);
+    const bool mean = o.mode == Mode::kUniform || o.threshold.kind == ThresholdSpec::Kind::kMean;
+    T_input = mean ? stats.before.mean : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
+    stats.before.above = count_angles_above(s.ct, s.theta, T_input, crease, s.threads);
+    if (!quality_beside) stats.quality_before = triangle_quality(m, s.threads);
   }
   stats.threshold = T_input;
   if (adaptive || hooks.force_adaptive_path) s.green.assign(m.num_faces(), 0);

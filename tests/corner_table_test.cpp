@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <functional>
 #include <mutex>
 #include <random>
 #include <stdexcept>
@@ -134,21 +135,43 @@ TEST(CornerTable, RecordedNeighboursAreTheNextVertices) {
 // the corner runs split between threads, tried and measured slower: the runs
 // must list each vertex's corners in corner order). Meshes of 2,048 faces or
 // more (over 1,024 vertices: two threads' worth of the matching's grain).
+// Work given to run beside the sort (refine's input quality) runs once,
+// before the matching (the mesh it reads is still the input), and changes
+// nothing in the table.
 TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
   const std::vector<test::NamedMesh> meshes = test::valid_meshes(INT64_MAX, 2048);
   for (const test::NamedMesh& c : meshes) {
     SCOPED_TRACE(c.name);
+    const QualitySummary input_quality = triangle_quality(c.mesh, 1);
     for (bool split : {true, false}) {
       Mesh one = c.mesh;
       CornerTable t1;
       const TopologyReport r1 = t1.build(one, split, 1, true);
-      for (int threads : {2, 3}) {
-        SCOPED_TRACE(threads);
-        Mesh m = c.mesh;
-        CornerTable t;
-        const TopologyReport r = t.build(m, split, threads, true);
-        ASSERT_NO_FATAL_FAILURE(expect_same_table(m, t, r, one, t1, r1));
-      }
+      for (int threads : {1, 2, 3})
+        for (bool with_beside : {false, true}) {
+          if (threads == 1 && !with_beside) continue;
+          SCOPED_TRACE(std::to_string(threads) + (with_beside ? " threads, work beside" : " threads"));
+          Mesh m = c.mesh;
+          CornerTable t;
+          int runs = 0;
+          QualitySummary q;
+          std::vector<int32_t> seen_corners;
+          const TopologyReport r =
+              t.build(m, split, threads, true, true,
+                      with_beside ? std::function<void()>([&] {
+                        ++runs;
+                        q = triangle_quality(m, 1);
+                        seen_corners.assign(m.corner_vertex.begin(), m.corner_vertex.end());
+                      })
+                                  : nullptr);
+          ASSERT_NO_FATAL_FAILURE(expect_same_table(m, t, r, one, t1, r1));
+          if (!with_beside) continue;
+          EXPECT_EQ(runs, 1);
+          EXPECT_EQ(q.min_angle, input_quality.min_angle);
+          EXPECT_EQ(q.p1_angle, input_quality.p1_angle);
+          EXPECT_TRUE(std::equal(seen_corners.begin(), seen_corners.end(), c.mesh.corner_vertex.begin(),
+                                 c.mesh.corner_vertex.end()));
+        }
     }
   }
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 2u : 10u);  // tests/data alone: bunny-npm and knot
@@ -546,16 +569,18 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
 }
 
 // The summary's tally (eight angles at a time where the processor has AVX2,
-// one at a time for the rest) against the definition, on angles placed
-// where it could go wrong: both sides of every histogram bound (the float
-// quotient t / 10.0f decides the bin), of the threshold and of the crease
-// exclusion, NaN, 0 and 180, and thresholds that are themselves angles, lie
-// between two floats, or are NaN. Blocks of every length mod 8: the faces
+// one at a time for the rest; with the angles given, listed sixteen corners
+// at a time where it has AVX-512) and count_angles_above against the
+// definition, on angles placed where it could go wrong: both sides of every
+// histogram bound (the float quotient t / 10.0f decides the bin), of the
+// threshold and of the crease exclusion, NaN, 0 and 180, and thresholds
+// that are themselves angles, lie between two floats, or are NaN. Blocks of every length mod 8: the faces
 // of a sphere, the last 0-15 of them dropped (their edges become boundaries,
 // which count nowhere); about a third of the edges take the angles listed,
-// the rest a pseudo-random one.
+// the rest a pseudo-random one. (61,440 corners: both thread counts' pieces
+// of every loop differ.)
 TEST(Angles, SummaryTallyFollowsItsDefinition) {
-  const Mesh sphere = test::icosphere(4);
+  const Mesh sphere = test::icosphere(5);
   std::vector<float> special = {0.0f, 180.0f, std::nanf(""), 20.0f, 45.5f, 1e-30f, 5e-13f};
   for (int k = 1; k <= 18; ++k) {
     float t = 10.0f * float(k);
@@ -608,16 +633,33 @@ TEST(Angles, SummaryTallyFollowsItsDefinition) {
           above += double(t) > threshold;
           hist[std::min(17, int(t / 10.0f))]++;
         }
-        for (int threads : {1, 2}) {
-          const AngleSummary s = summarize_angles(m, ct, &theta, threshold, exclude, threads);
-          const std::string at = "threshold " + std::to_string(threshold) + " exclude " + std::to_string(exclude) +
-                                 " dropped " + std::to_string(dropped) + " threads " + std::to_string(threads);
-          EXPECT_EQ(s.edges, edges) << at;
-          EXPECT_EQ(s.above, above) << at;
-          EXPECT_EQ(s.max, double(max)) << at;
-          EXPECT_EQ(s.mean, edges ? double(units) / 1099511627776.0 / double(edges) : 0.0) << at;
-          for (int k = 0; k < 18; ++k) EXPECT_EQ(s.histogram[size_t(k)], hist[k]) << at << " bin " << k;
-        }
+        // The widest registers the processor has, then none wider than SSE2
+        // (angles listed one corner at a time, tallied one at a time).
+#if ITEAS_X86_FEATURES
+        const int caps[] = {int(CpuFeature::kAvx512), -1};
+#else
+        const int caps[] = {0};
+#endif
+        for (int cap : caps)
+          for (int threads : {1, 2}) {
+#if ITEAS_X86_FEATURES
+            cpu_feature_cap() = cap;
+#endif
+            const AngleSummary s = summarize_angles(m, ct, &theta, threshold, exclude, threads);
+            const int64_t counted = count_angles_above(ct, theta, threshold, exclude, threads);
+#if ITEAS_X86_FEATURES
+            cpu_feature_cap() = int(CpuFeature::kAvx512);
+#endif
+            const std::string at = "threshold " + std::to_string(threshold) + " exclude " + std::to_string(exclude) +
+                                   " dropped " + std::to_string(dropped) + " threads " + std::to_string(threads) +
+                                   (cap < 0 ? " SSE2" : "");
+            EXPECT_EQ(s.edges, edges) << at;
+            EXPECT_EQ(s.above, above) << at;
+            EXPECT_EQ(counted, above) << at;
+            EXPECT_EQ(s.max, double(max)) << at;
+            EXPECT_EQ(s.mean, edges ? double(units) / 1099511627776.0 / double(edges) : 0.0) << at;
+            for (int k = 0; k < 18; ++k) EXPECT_EQ(s.histogram[size_t(k)], hist[k]) << at << " bin " << k;
+          }
       }
   }
 }
