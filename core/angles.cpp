@@ -340,7 +340,7 @@ ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void normals_of_points(const fl
 // blocks.
 struct QualityTally {
   static constexpr int kBins = 6001;
-  Array<int32_t> bins;  // a thread's tally holds fewer than 2^31 faces a bin
+  Array<int32_t> bins;  // (a mesh has fewer than 2^31 faces)
   int64_t faces = 0;
   float lo = 180.0f;
   void add(const PointBlock& points, int n) {
@@ -367,8 +367,8 @@ struct QualityTally {
 // from one CPU to another once, when the loop is done and summary() merges
 // them. (A tally a piece, each merged into the total under a lock, moved
 // 24 KB between the CPUs a piece: bunny-npm uniform level 1 with the
-// statistics on two threads spent about 7 us of its 0.15 ms on it.) Which
-// tally a face goes to changes no count and no minimum.
+// statistics on two threads, in a loop, 0.1485 -> 0.1437 ms.) Which tally a
+// face goes to changes no count and no minimum.
 class QualityTallies {
  public:
   explicit QualityTallies(int threads) : tallies_(size_t(resolve_threads(threads))), busy_(tallies_.size()) {}
@@ -1252,7 +1252,8 @@ __attribute__((target("avx512f"))) int64_t count_above_avx512(const int32_t* opp
     const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
     const __mmask16 first = _mm512_cmpgt_epi32_mask(_mm512_loadu_si512(opp + c), at);
     const __m512 t = _mm512_loadu_ps(theta + c);
-    const __mmask16 hit = _mm512_mask_cmp_ps_mask(first, t, a, _CMP_GE_OQ) & __mmask16(~_mm512_cmp_ps_mask(t, x, _CMP_GE_OQ));
+    const __mmask16 kept = __mmask16(~_mm512_cmp_ps_mask(t, x, _CMP_GE_OQ));
+    const __mmask16 hit = _mm512_mask_cmp_ps_mask(first, t, a, _CMP_GE_OQ) & kept;
     count += __builtin_popcount(hit);
   }
   return count;
