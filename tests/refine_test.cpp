@@ -191,6 +191,18 @@ TEST(Refine, SameOutputForOneAndTwoThreads) {
       const Mesh a = refined(c.mesh, opts(mode, levels, 1), &one), b = refined(c.mesh, opts(mode, levels, 2), &two);
       EXPECT_TRUE(same_mesh(a, b));
       EXPECT_EQ(counts(one), counts(two));
+      // The statistics too (on two threads the input's quality is taken
+      // beside the corner table's sort).
+      EXPECT_EQ(one.threshold, two.threshold);
+      EXPECT_EQ(one.before.mean, two.before.mean);
+      EXPECT_EQ(one.before.above, two.before.above);
+      EXPECT_EQ(one.before.histogram, two.before.histogram);
+      EXPECT_EQ(one.after.mean, two.after.mean);
+      EXPECT_EQ(one.after.above, two.after.above);
+      EXPECT_EQ(one.quality_before.min_angle, two.quality_before.min_angle);
+      EXPECT_EQ(one.quality_before.p1_angle, two.quality_before.p1_angle);
+      EXPECT_EQ(one.quality_after.min_angle, two.quality_after.min_angle);
+      EXPECT_EQ(one.quality_after.p1_angle, two.quality_after.p1_angle);
       int64_t before = one.triangles_in;
       for (const LevelStats& l : one.levels) {
         EXPECT_EQ(l.triangles_after - before, 3 * l.red_splits + l.green_splits - l.greens_merged) << "level " << l.level;
