@@ -4,11 +4,11 @@
 #include <atomic>
 #include <cmath>
 #include <cstring>
-#include <deque>
 #include <limits>
 #include <mutex>
 #include <optional>
 #include <sstream>
+#include <stdexcept>
 
 #include "core/cpu_features.h"
 #include "core/parallel.h"
@@ -226,6 +226,12 @@ struct PointBlock {
 
 #if ITEAS_X86_FEATURES
 namespace {
+// from, from + 1, ..., from + 15: sixteen consecutive corners (or slots).
+__attribute__((target("avx512f"), always_inline)) inline __m512i sixteen_from(int32_t from) {
+  return _mm512_add_epi32(_mm512_set1_epi32(from),
+                          _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
+}
+
 // Four points (or normals) of three floats, each read as four floats (the
 // fourth, the next point's first, must be readable), one to a 128-bit lane.
 __attribute__((target("avx512f"), always_inline)) inline __m512 four_points(const float* a, const float* b,
@@ -382,11 +388,8 @@ class QualityTallies {
           tally_ = &owner_.tallies_[i];
           break;
         }
-      if (!tally_) {  // (not expected: a tally of its own, kept until the summary)
-        std::lock_guard<std::mutex> lock(owner_.mutex_);
-        owner_.extra_.emplace_back();
-        tally_ = &owner_.extra_.back();
-      }
+      // (parallel_for runs no more pieces at once than the threads it is given.)
+      if (!tally_) throw std::logic_error("QualityTallies: more pieces at once than threads");
       if (tally_->bins.empty()) tally_->bins.assign(QualityTally::kBins, 0);
     }
     ~Lease() {
@@ -418,7 +421,6 @@ class QualityTallies {
       for (int i = 0; i < QualityTally::kBins; ++i) all[i] += t.bins[i];
     };
     for (QualityTally& t : tallies_) merge(t);
-    for (QualityTally& t : extra_) merge(t);
     QualitySummary q;
     if (faces == 0) return q;
     q.min_angle = double(lo);
@@ -449,8 +451,6 @@ class QualityTallies {
   };
   std::vector<QualityTally> tallies_;
   std::vector<Flag> busy_;
-  std::mutex mutex_;
-  std::deque<QualityTally> extra_;
 };
 
 // Unit normals in double of the faces whose points are gathered in pt (a,
@@ -521,16 +521,15 @@ __attribute__((target("avx512f"))) int32_t list_chunk_edges_avx512(const int32_t
                                                                    int32_t f0, int32_t f1, int32_t* corner,
                                                                    int32_t* first, int32_t* second, int32_t& ne,
                                                                    int32_t* faces, int32_t& nl) {
-  const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512i base = _mm512_set1_epi32(f0), past = _mm512_set1_epi32(f1);
   for (; c + 16 <= end; c += 16) {
-    const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
+    const __m512i at = sixteen_from(c);
     const __m512i d = _mm512_loadu_si512(opp + c);
     const __mmask16 keep = _mm512_cmpgt_epi32_mask(d, at);  // (a boundary's -1 is not)
     if (!keep) continue;
     const __m512i g = div3_epi32_avx512(_mm512_maskz_mov_epi32(keep, d));
     const __mmask16 far = _mm512_mask_cmpge_epi32_mask(keep, g, past);
-    const __m512i slots = _mm512_maskz_expand_epi32(far, _mm512_add_epi32(_mm512_set1_epi32(nl), lanes));
+    const __m512i slots = _mm512_maskz_expand_epi32(far, sixteen_from(nl));
     const __m512i other = _mm512_mask_blend_epi32(far, _mm512_sub_epi32(g, base), slots);
     _mm512_mask_compressstoreu_epi32(corner + ne, keep, at);
     _mm512_mask_compressstoreu_epi32(first + ne, keep, _mm512_sub_epi32(div3_epi32_avx512(at), base));
@@ -757,9 +756,12 @@ struct AngleTally {
   float max = 0;
   int64_t hist[kBins] = {};
 
-  // Angle t (>= 0 or NaN), one at a time.
+  // Whether angle t (>= 0 or NaN) is counted: a number, and under the
+  // exclusion (creases) when there is one.
+  static bool counted(float t, double exclude) { return !(std::isnan(t) || (exclude > 0 && t >= exclude)); }
+  // Angle t, one at a time.
   void add(float t, double threshold, double exclude) {
-    if (std::isnan(t) || (exclude > 0 && t >= exclude)) return;
+    if (!counted(t, exclude)) return;
     ++edges;
     sum += static_cast<int64_t>(double(t) * kUnits);  // t <= 180: under 2^48 units
     max = std::max(max, t);
@@ -893,10 +895,9 @@ __attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t
                                                                    int32_t* near_a, int32_t* near_b, int& n_near,
                                                                    int near_room, int32_t* others, int& n_others,
                                                                    int others_room) {
-  const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512i past = _mm512_set1_epi32(3 * f1), first = _mm512_set1_epi32(f0);
   for (; c + 16 <= end && n_near + 16 <= near_room && n_others + 16 <= others_room; c += 16) {
-    const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
+    const __m512i at = sixteen_from(c);
     const __m512i d = _mm512_loadu_si512(opp + (c - base));
     const __mmask16 edge = _mm512_cmpgt_epi32_mask(d, at);  // (a boundary's -1 is not)
     const __mmask16 near = _mm512_mask_cmplt_epi32_mask(edge, d, past);
@@ -925,9 +926,8 @@ __attribute__((target("avx512f"))) int32_t list_block_edges_avx512(const int32_t
 __attribute__((target("avx512f"))) int32_t list_first_angles_avx512(const int32_t* opp, int32_t base,
                                                                     const float* theta, int32_t c, int32_t end,
                                                                     float* ts, int& n, int room) {
-  const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   for (; c + 16 <= end && n + 16 <= room; c += 16) {
-    const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
+    const __m512i at = sixteen_from(c);
     const __mmask16 first = _mm512_cmpgt_epi32_mask(_mm512_loadu_si512(opp + (c - base)), at);
     _mm512_mask_compressstoreu_ps(ts + n, first, _mm512_loadu_ps(theta + c));
     n += __builtin_popcount(first);
@@ -1245,11 +1245,10 @@ namespace {
 // to the first corner not looked at.
 __attribute__((target("avx512f"))) int64_t count_above_avx512(const int32_t* opp, const float* theta, int32_t& c,
                                                                int32_t end, float above, float excluded) {
-  const __m512i lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512 a = _mm512_set1_ps(above), x = _mm512_set1_ps(excluded);
   int64_t count = 0;
   for (; c + 16 <= end; c += 16) {
-    const __m512i at = _mm512_add_epi32(_mm512_set1_epi32(c), lanes);
+    const __m512i at = sixteen_from(c);
     const __mmask16 first = _mm512_cmpgt_epi32_mask(_mm512_loadu_si512(opp + c), at);
     const __m512 t = _mm512_loadu_ps(theta + c);
     const __mmask16 kept = __mmask16(~_mm512_cmp_ps_mask(t, x, _CMP_GE_OQ));
@@ -1278,7 +1277,7 @@ int64_t count_angles_above(const CornerTable& ct, const Array<float>& theta, dou
 #endif
     for (; c < int32_t(e); ++c) {
       const float t = th[c];
-      count += opp[c] > c && !std::isnan(t) && !(exclude > 0 && t >= exclude) && double(t) > threshold;
+      count += opp[c] > c && AngleTally::counted(t, exclude) && double(t) > threshold;
     }
     total.fetch_add(count, std::memory_order_relaxed);
   }, 16384);

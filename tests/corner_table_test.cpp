@@ -175,6 +175,25 @@ TEST(CornerTable, TheSameTableOnOneTwoAndThreeThreads) {
     }
   }
   EXPECT_GE(meshes.size(), test::corpus_dir().empty() ? 2u : 10u);  // tests/data alone: bunny-npm and knot
+  // The shipped meshes above need no split; two tetrahedra sharing a vertex
+  // do (its second fan gets a vertex of its own): the work beside the sort
+  // still sees the input's corners, on one thread and on two.
+  const Mesh shared = test::two_tetrahedra_sharing_a_vertex();
+  for (int threads : {1, 2}) {
+    Mesh m = shared;
+    CornerTable t;
+    std::vector<int32_t> seen_corners;
+    int runs = 0;
+    const TopologyReport r = t.build(m, true, threads, true, true, [&] {
+      ++runs;
+      seen_corners.assign(m.corner_vertex.begin(), m.corner_vertex.end());
+    });
+    EXPECT_GT(r.split_vertices, 0) << threads;
+    EXPECT_EQ(runs, 1) << threads;
+    EXPECT_TRUE(std::equal(seen_corners.begin(), seen_corners.end(), shared.corner_vertex.begin(),
+                           shared.corner_vertex.end()))
+        << threads;
+  }
 }
 
 // Runs of 3-8 corners are matched in AVX-512 registers where the processor
