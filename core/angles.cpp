@@ -67,32 +67,8 @@ __attribute__((always_inline)) static inline float fast_atan2_pos(float y, float
 }
 
 // out[i] = atan2(y[i], x[i]) in degrees for i < n, y >= 0 (NaN stays NaN).
-// GCC if-converts the selects above only without trapping-math semantics
-// (no trap can occur: the divisor is never zero). Clang vectorises it as is.
-#if defined(__GNUC__) && !defined(__clang__)
-#define ITEAS_SELECTS_VECTORISE __attribute__((optimize("no-trapping-math")))
-#else
-#define ITEAS_SELECTS_VECTORISE
-#endif
-// These loops are plain C++ that GCC vectorises, so GCC's target_clones
-// makes their AVX-512 (x86-64-v4: sixteen floats or eight doubles a
-// register) and AVX versions (butterfly.cpp's sums are written with AVX
-// intrinsics instead and pick their version with cpu_has(),
-// core/cpu_features.h). Every version computes the same bits: the loops
-// work element by element, and the core is built with -ffp-contract=off, so
-// no version fuses a multiply and an add that the baseline rounds twice
-// (AVX-512 brings FMA). With the AVX-512 versions, uniform jobs with the
-// statistics took 15-18 % less time (bunny-npm levels 1-3, one thread, AMD
-// Zen 5 class: level 1 0.385 -> 0.327 ms, level 3 4.9 -> 4.2 ms).
-// The AVX clones are chosen by an ifunc resolver, which runs while the
-// program is being loaded: under ThreadSanitizer, before its runtime is
-// set up, where the resolver's instrumented code crashes (the sanitizer
-// build then uses the baseline loops).
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && !defined(__SANITIZE_THREAD__)
-#define ITEAS_WIDE_CLONES __attribute__((target_clones("arch=x86-64-v4", "avx", "default")))
-#else
-#define ITEAS_WIDE_CLONES
-#endif
+// (The selects above vectorise without trapping-math semantics: no trap can
+// occur, the divisor is never zero. core/cpu_features.h.)
 ITEAS_SELECTS_VECTORISE ITEAS_WIDE_CLONES static void atan2_degrees(const float* __restrict y,
                                                                     const float* __restrict x, float* __restrict out,
                                                                     int64_t n) {

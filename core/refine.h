@@ -108,6 +108,22 @@ RefineResult refine_mesh(Mesh& mesh, const RefineOptions& options, const RefineH
 // normal, normalised. On up to |threads| threads (<= 0: all cores); the
 // result is the same for any count.
 void recompute_normals(Mesh& mesh, int threads = 1);
+// Its parts (exposed for tests): each wedge's smoothing group, named by the
+// group's first wedge, for the normal channel |normal_channel|; and each
+// group's sum of its faces' cross products (twice the area times the unit
+// normal) in face order, in double precision, 3 per wedge (at the group's
+// first wedge; zero elsewhere). Bit for bit what the rule gives, on any
+// number of threads.
+Array<int32_t> smoothing_groups(const Mesh& mesh, int normal_channel, int threads = 1);
+Array<double> smoothing_group_sums(const Mesh& mesh, const Array<int32_t>& group, int threads = 1);
+
+// Every tangent channel (kind kTangent, 3 or 4 components) made orthogonal to
+// the normal channel NORMAL where there is one (t - (t . n) n) and of unit
+// length, in double precision; a tangent of length zero (after that) is left
+// as it is; the handedness w (a fourth component) made -1 when negative, else
+// 1. As refinement does after recompute_normals. On up to |threads| threads;
+// the same result for any count.
+void orthogonalise_tangents(Mesh& mesh, int threads = 1);
 
 // Bytes held by the mesh's arrays (capacity), for the memory statistics.
 int64_t mesh_bytes(const Mesh& mesh);

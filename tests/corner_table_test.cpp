@@ -5,6 +5,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <functional>
 #include <mutex>
@@ -1016,8 +1017,22 @@ TEST(Pages, FreshArraysAreResidentBeforeTheyAreWritten) {
     const uintptr_t lo = (reinterpret_cast<uintptr_t>(a.data()) + uintptr_t(page) - 1) & ~uintptr_t(page - 1);
     const uintptr_t hi = (reinterpret_cast<uintptr_t>(a.data()) + bytes) & ~uintptr_t(page - 1);
     std::vector<unsigned char> in((hi - lo) / uintptr_t(page));
-    ASSERT_EQ(mincore(reinterpret_cast<void*>(lo), hi - lo, in.data()), 0);
-    EXPECT_EQ(std::count_if(in.begin(), in.end(), [](unsigned char x) { return (x & 1) == 0; }), 0);
+    auto absent = [&] {
+      EXPECT_EQ(mincore(reinterpret_cast<void*>(lo), hi - lo, in.data()), 0);
+      return std::count_if(in.begin(), in.end(), [](unsigned char x) { return (x & 1) == 0; });
+    };
+    // Asked again a little later when pages seem absent: a page the kernel
+    // is moving (compaction, or this virtual machine's memory monitor) has
+    // no entry for that moment (once here, 333 pages of the 9 MB under
+    // ctest -j2), while a page never faulted in stays absent.
+    int64_t missing = absent();
+    if (missing > 0) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      const int64_t first = missing;
+      missing = absent();
+      if (missing == 0) std::printf("%lld pages absent, then resident\n", static_cast<long long>(first));
+    }
+    EXPECT_EQ(missing, 0);
   }
 #else
   GTEST_SKIP() << "no MADV_POPULATE_WRITE";
