@@ -304,9 +304,13 @@ struct ChildPick {
 };
 constexpr ChildPick kChildPick;
 
+// With |ccw|, the children's wedges the same way, from the parent's corners'
+// wedges (|pcw|) and the edge points' wedges on the face's side (|ewedge|,
+// at every corner).
 __attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, const int32_t* opp,
-                                                            const int32_t* evert, int64_t b, int64_t e, int64_t nc,
-                                                            int32_t* ccv) {
+                                                            const int32_t* evert, const int32_t* pcw,
+                                                            const int32_t* ewedge, int64_t b, int64_t e, int64_t nc,
+                                                            int32_t* ccv, int32_t* ccw) {
   const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512i pick0 = _mm512_load_si512(kChildPick.idx[0]), pick1 = _mm512_load_si512(kChildPick.idx[1]),
                 pick2 = _mm512_load_si512(kChildPick.idx[2]);
@@ -321,6 +325,13 @@ __attribute__((target("avx512f"))) int64_t children_avx512(const int32_t* pcv, c
     _mm512_storeu_si512(out, _mm512_permutex2var_epi32(corners, pick0, m));
     _mm512_storeu_si512(out + 16, _mm512_permutex2var_epi32(corners, pick1, m));
     _mm512_storeu_si512(out + 32, _mm512_permutex2var_epi32(corners, pick2, m));
+    if (ccw) {
+      const __m512i cw = _mm512_loadu_si512(pcw + p), mw = _mm512_loadu_si512(ewedge + p);
+      int32_t* wout = ccw + 4 * p;
+      _mm512_storeu_si512(wout, _mm512_permutex2var_epi32(cw, pick0, mw));
+      _mm512_storeu_si512(wout + 16, _mm512_permutex2var_epi32(cw, pick1, mw));
+      _mm512_storeu_si512(wout + 32, _mm512_permutex2var_epi32(cw, pick2, mw));
+    }
   }
   return f;
 }
@@ -495,8 +506,8 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
     int32_t* ccw = cw.data();
     int64_t from = b;
 #if ITEAS_X86_FEATURES
-    if (!wedges && fg.empty() && s.bctx.wide && cpu_has(CpuFeature::kAvx512))
-      from = children_avx512(pcv, opp, evert.data(), b, e, nc, ccv);
+    if (fg.empty() && s.bctx.wide && cpu_has(CpuFeature::kAvx512))
+      from = children_avx512(pcv, opp, evert.data(), cw_old, ewedge.data(), b, e, nc, ccv, wedges ? ccw : nullptr);
 #endif
     for (int64_t f = from; f < e; ++f) {
       const size_t p = 3 * size_t(f), q = 12 * size_t(f);

@@ -923,11 +923,11 @@ TEST(Refine, StatisticsOffGivesTheSameMesh) {
 }
 
 // The routines for wider registers (AVX sums, AVX2 and AVX-512 edge matching
-// and ring copies, AVX-512 canonical corners, ring offsets, children and
-// their opposites; also with AVX2 at most) against the
+// and ring copies, AVX-512 canonical corners, ring offsets, children (their
+// corners and wedges) and their opposites; also with AVX2 at most) against the
 // baseline ones: the same mesh, bit for bit, in both modes, on one and two
 // threads. Meshes without attributes or groups take every wide routine of a
-// uniform level.
+// uniform level; meshes with attributes also take the children's wedges.
 TEST(Refine, WideRoutinesGiveTheSameMesh) {
   int n = 0, plain = 0;
   for (const Case& c : cases(30000)) {
