@@ -1446,7 +1446,8 @@ TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
 // adaptive levels, also as green pairs and faces kept: Avocado (UV seams)
 // refined, its normals then redrawn so that most vertices keep one wedge
 // (their own group) and some vertices' wedges split into two groups or
-// share one. More than one block of wedges, on one and two threads.
+// share one. More than one block of wedges, on one and two threads. And a
+// plane, whose normals' x and y are zeros of either sign.
 TEST(Refine, RecomputedNormalsOfRefinedMeshesFollowSmoothingGroups) {
   const Mesh avocado = shipped("Avocado.notex.glb");
   ASSERT_GT(avocado.num_faces(), 0);
@@ -1470,6 +1471,18 @@ TEST(Refine, RecomputedNormalsOfRefinedMeshesFollowSmoothingGroups) {
     EXPECT_GT(split, 0);
     expect_normals_by_the_rule(m, ni);
   }
+  // A plane: its normals' x and y are zeros, of either sign.
+  const double origin[3] = {0, 0, 0}, u[3] = {3, 1, 0}, v[3] = {-1, 2, 0};
+  Mesh plane = test::planar_grid(64, origin, u, v);
+  plane.materialize();
+  Channel normal;
+  normal.name = "NORMAL";
+  normal.components = 3;
+  normal.kind = ChannelKind::kNormal;
+  for (int32_t w = 0; w < plane.num_wedges(); ++w)
+    for (float x : {0.0f, 0.0f, 1.0f}) normal.data.push_back(x);
+  plane.channels.push_back(normal);
+  expect_normals_by_the_rule(refined(plane, opts(Mode::kUniform, 1, 1)), 0);
 }
 
 // Four faces laid out as a split face's children (child j keeps corner j,
