@@ -1314,6 +1314,15 @@ TEST(Refine, DoubledTrianglesStayBounded) {
   }
 }
 
+// An empty NORMAL channel (3 components, recomputed by refinement).
+Channel normal_channel() {
+  Channel normal;
+  normal.name = "NORMAL";
+  normal.components = 3;
+  normal.kind = ChannelKind::kNormal;
+  return normal;
+}
+
 // A wedge's normal as bits (+0 and -0 apart).
 std::array<uint32_t, 3> normal_bits(const Channel& normal, int32_t w) {
   std::array<uint32_t, 3> b;
@@ -1400,10 +1409,7 @@ void expect_normals_by_the_rule(const Mesh& m, int channel) {
 // it bit for bit.
 TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
   Mesh m;
-  Channel normal;
-  normal.name = "NORMAL";
-  normal.components = 3;
-  normal.kind = ChannelKind::kNormal;
+  Channel normal = normal_channel();
   const float choices[5][3] = {{0, 0, 1}, {0, 1, 0}, {1, 0, 0}, {0.6f, 0, 0.8f}, {-0.0f, 0, 1}};
   auto add_fan = [&](float cx, int k) {
     const int32_t centre = m.num_vertices();
@@ -1475,10 +1481,7 @@ TEST(Refine, RecomputedNormalsOfRefinedMeshesFollowSmoothingGroups) {
   const double origin[3] = {0, 0, 0}, u[3] = {3, 1, 0}, v[3] = {-1, 2, 0};
   Mesh plane = test::planar_grid(64, origin, u, v);
   plane.materialize();
-  Channel normal;
-  normal.name = "NORMAL";
-  normal.components = 3;
-  normal.kind = ChannelKind::kNormal;
+  Channel normal = normal_channel();
   for (int32_t w = 0; w < plane.num_wedges(); ++w)
     for (float x : {0.0f, 0.0f, 1.0f}) normal.data.push_back(x);
   plane.channels.push_back(normal);
@@ -1498,10 +1501,7 @@ TEST(Refine, RecomputedNormalsOfRefinedMeshesFollowSmoothingGroups) {
 // sum and normal must match the rule's bit for bit.
 TEST(Refine, RecomputedNormalsOfFacesLikeChildrenWithSharedVertices) {
   Mesh m;
-  Channel normal;
-  normal.name = "NORMAL";
-  normal.components = 3;
-  normal.kind = ChannelKind::kNormal;
+  Channel normal = normal_channel();
   std::mt19937 rng(11);
   std::uniform_real_distribution<float> u(-1.0f, 1.0f);
   auto vertex = [&] {
