@@ -1209,7 +1209,7 @@ void adaptive_level(State& s, Mesh& m, const Plan& plan, const std::vector<float
 
 // Wedges made unit length a block at a time: their vectors gathered into
 // arrays of x, y and z, the arithmetic in vector registers (unit_vectors,
-// orthonormal), the results written back one wedge at a time.
+// orthonormal_vectors), the results written back one wedge at a time.
 constexpr int kUnitBlock = 256;
 
 // o = n / |n| in single precision for |count| vectors n given as arrays of
@@ -1273,7 +1273,8 @@ Array<int32_t> smoothing_groups(const Mesh& m, int normal_channel, int threads) 
   // wedges sorts them by normal instead. (Before, every wedge was sorted by
   // vertex and every vertex's run looked at: Avocado level 4, 88,291
   // wedges of which 1,376 share their vertex, 0.20 -> 0.10 ms.)
-  // per bucket: its wedges, then (buckets of several) ~ where its next goes
+  // count[b]: bucket b's wedges; then, for a bucket of several, ~ the place
+  // in |order| of its next wedge.
   std::vector<int32_t> count(size_t(nv) + 1, 0);
   Array<int32_t> group(static_cast<size_t>(nw));  // every entry written below
   for (int32_t w = 0; w < nw; ++w) ++count[size_t(bucket(w))];
