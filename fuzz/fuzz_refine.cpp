@@ -1,9 +1,16 @@
 // Fuzz target: the core on arbitrary index buffers — corner table (cuts,
 // splits), then one or two levels in every mode. Positions come from the
 // input too, so degenerate and non-finite-free odd geometry is exercised.
+// With bit 128 of the second byte, the mesh carries normals and tangents
+// (and seams): the oracles below then compare them too, and the refined
+// mesh's smoothing groups and sums are checked against the rule.
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
+#include <map>
+#include <utility>
+#include <vector>
 
 #include "core/corner_table.h"
 #include "core/cpu_features.h"
@@ -25,6 +32,35 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   m.materialize();
   iteas::drop_degenerate_faces(m);
   if (m.num_faces() == 0) return 0;
+  const bool attributes = (data[1] & 128) != 0;
+  if (attributes) {
+    // Normals and tangents drawn from a few values, some corners with a
+    // wedge of their own (seams), no face groups (the uniform levels' wider
+    // children routine then takes the wedges too).
+    m.face_group.clear();
+    iteas::Channel normal, tangent;
+    normal.name = "NORMAL";
+    normal.components = 3;
+    normal.kind = iteas::ChannelKind::kNormal;
+    tangent.name = "TANGENT";
+    tangent.components = 4;
+    tangent.kind = iteas::ChannelKind::kTangent;
+    const float values[4][4] = {{0, 0, 1, 1}, {0, 1, 0, -1}, {0.6f, 0, 0.8f, 0}, {-0.0f, 0, 1, -1}};
+    auto add_values = [&](size_t pick) {
+      for (int k = 0; k < 3; ++k) normal.data.push_back(values[pick % 4][k]);
+      for (int k = 0; k < 4; ++k) tangent.data.push_back(values[(pick / 4) % 4][(k + 1) % 4]);
+    };
+    for (int32_t w = 0; w < m.num_wedges(); ++w) add_values(data[3 + size_t(w) % (size - 3)]);
+    for (size_t c = 0; c < m.corner_wedge.size(); ++c) {
+      const uint8_t b = data[3 + (c * 7) % (size - 3)];
+      if (!(b & 1)) continue;
+      m.corner_wedge[c] = int32_t(m.wedge_vertex.size());
+      m.wedge_vertex.push_back(m.corner_vertex[c]);
+      add_values(b >> 1);
+    }
+    m.channels.push_back(normal);
+    m.channels.push_back(tangent);
+  }
   {
     // Oracle: the corner table's matching in AVX-512 registers, in AVX2
     // registers (where the processor has them) and with SSE2 alone give the
@@ -79,9 +115,46 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     iteas::refine_mesh(again, o, hooks, &st2);
     if (again.positions.size() != m.positions.size() || again.corner_vertex != m.corner_vertex ||
         std::memcmp(again.positions.data(), m.positions.data(), m.positions.size() * sizeof(float)) != 0 ||
-        st2.triangles_out != st.triangles_out || st2.levels.size() != st.levels.size())
+        st2.triangles_out != st.triangles_out || st2.levels.size() != st.levels.size() ||
+        again.corner_wedge != m.corner_wedge || again.wedge_vertex != m.wedge_vertex ||
+        again.channels.size() != m.channels.size())
       __builtin_trap();
+    for (size_t i = 0; i < m.channels.size(); ++i) {
+      const iteas::Array<float>&x = again.channels[i].data, &y = m.channels[i].data;
+      if (x.size() != y.size() || std::memcmp(x.data(), y.data(), x.size() * sizeof(float)) != 0) __builtin_trap();
+    }
   };
+  if (attributes) {
+    // Oracle: the refined mesh's smoothing groups and their sums (a split
+    // face's children summed together) against the rule written plainly:
+    // groups by vertex and normal bits, each group's faces' cross products
+    // added in face order.
+    const int ni = m.find_channel("NORMAL");
+    if (ni < 0) __builtin_trap();
+    const iteas::Array<int32_t> group = iteas::smoothing_groups(m, ni, 1);
+    const iteas::Array<double> sums = iteas::smoothing_group_sums(m, group, 1);
+    const float* wn = m.channels[size_t(ni)].data.data();
+    std::map<std::pair<int32_t, std::array<uint32_t, 3>>, int32_t> first;
+    std::vector<double> expected(3 * size_t(m.num_wedges()), 0.0);
+    for (int32_t w = 0; w < m.num_wedges(); ++w) {
+      std::array<uint32_t, 3> bits;
+      std::memcpy(bits.data(), wn + 3 * size_t(w), sizeof(bits));
+      if (first.try_emplace(std::make_pair(m.wedge_vertex[w], bits), w).first->second != group[size_t(w)])
+        __builtin_trap();
+    }
+    for (int32_t f = 0; f < m.num_faces(); ++f) {
+      const float* a = &m.positions[3 * size_t(m.corner_vertex[3 * f])];
+      const float* b = &m.positions[3 * size_t(m.corner_vertex[3 * f + 1])];
+      const float* c = &m.positions[3 * size_t(m.corner_vertex[3 * f + 2])];
+      const double u[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
+      const double v[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
+      const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
+      for (int k = 0; k < 3; ++k)
+        for (int i = 0; i < 3; ++i) expected[3 * size_t(group[size_t(m.corner_wedge[3 * f + k])]) + i] += n[i];
+    }
+    if (sums.size() != expected.size() || std::memcmp(sums.data(), expected.data(), sums.size() * sizeof(double)) != 0)
+      __builtin_trap();
+  }
   if (data[2] & 16) {
     // Oracle: two threads (the worker pool, pieces claimed in any order).
     // Exactly two: left to choose, the refinement takes one for a job this
