@@ -369,6 +369,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   auto shared = [cw_old](int32_t c, int32_t o) {
     return cw_old[next_corner(c)] == cw_old[prev_corner(o)] && cw_old[prev_corner(c)] == cw_old[next_corner(o)];
   };
+  // Per canonical corner, with wedges: 2 where its edge's two sides carry
+  // different wedges (the data pass makes two new wedges there), else 1.
+  Array<uint8_t> made(wedges ? size_t(nc) : 0);
   parallel_for_chunks(chunks, s.threads, [&](int64_t b, int64_t e) {
     for (int64_t k = b; k < e; ++k) {
       int64_t ne = 0, nw = 0;
@@ -379,7 +382,9 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         for (int64_t c = begin; c < end; ++c) {
           if (!canonical(c)) continue;
           ++ne;
-          nw += (opp[c] < 0 || shared(int32_t(c), opp[c])) ? 1 : 2;
+          const uint8_t w = (opp[c] < 0 || shared(int32_t(c), opp[c])) ? 1 : 2;
+          made[size_t(c)] = w;
+          nw += w;
         }
       }
       edges_in[k + 1] = ne;
@@ -471,7 +476,7 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
         sources.emplace_back(cw_old[next_corner(c)], cw_old[prev_corner(c)]);
         ewedge[c] = wf;
         if (o < 0) continue;
-        if (shared(c, o)) { ewedge[o] = wf; continue; }
+        if (made[size_t(c)] == 1) { ewedge[o] = wf; continue; }
         const int32_t wg = w0 + int32_t(sources.size());
         m.wedge_vertex[wg] = v;
         sources.emplace_back(cw_old[next_corner(o)], cw_old[prev_corner(o)]);
@@ -486,7 +491,8 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   // level will want them (the larger next level sets the peak then). Their
   // block's memory, already the process's, becomes the children's corners.
   s.bctx.rings = nullptr;
-  note_peak(s, m, vbytes(evert) + vbytes(ewedge));
+  note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(made));
+  Array<uint8_t>().swap(made);
   Array<int32_t> spare;
   if (carry && !s.rings.offset.empty()) carry_rings(s.rings, s.threads);
   else spare = s.rings.release_block();
