@@ -1550,6 +1550,66 @@ TEST(Refine, RecomputedNormalsOfFacesLikeChildrenWithSharedVertices) {
   expect_normals_by_the_rule(m, 0);
 }
 
+// A uniform level's new wedges, against the rule: each split edge gets a new
+// vertex and, on each side of it, the wedge halfway between that side's two
+// wedges (blended channel by channel: 0.5 (a + b)), one wedge for both
+// sides where they carry the same two wedges, two where they do not (a
+// seam). Read from the children's layout (the centre child's corner k holds
+// the midpoint of the parent's edge opposite corner k, with its wedge on
+// the parent's side). Avocado (UV seams) and BoxTextured (a seam at every
+// edge), on one and two threads.
+TEST(Refine, UniformLevelMakesAWedgeForEachSideOfASeam) {
+  for (const char* name : {"Avocado.notex.glb", "BoxTextured.glb"}) {
+    const Mesh in = shipped(name);
+    ASSERT_TRUE(in.has_wedges()) << name;
+    const int ti = in.find_channel("TEXCOORD_0");
+    ASSERT_GE(ti, 0) << name;
+    // The input as the level sees it (non-manifold fans split), and its table.
+    Mesh parent = prepared(in);
+    CornerTable ct;
+    ct.build(parent, false, 1);
+    const int32_t nf = parent.num_faces();
+    int64_t seams = 0, shared_edges = 0;
+    for (int threads : {1, 2}) {
+      RefineHooks h;
+      h.spatial_order = false;  // children 4f to 4f + 3 of face f
+      h.choose_threads = false;
+      h.statistics = false;
+      Mesh out = parent;
+      RefineStats st;
+      refine_mesh(out, opts(Mode::kUniform, 1, threads), h, &st);
+      ASSERT_EQ(out.num_faces(), 4 * nf) << name;
+      const Channel& uv0 = parent.channels[size_t(ti)];
+      const Channel& uv1 = out.channels[size_t(ti)];
+      const int cc = uv0.components;
+      // The midpoint's wedge on face f's side of the edge opposite corner k.
+      auto mid_wedge = [&](int32_t f, int k) { return out.corner_wedge[3 * (4 * size_t(f) + 3) + size_t(k)]; };
+      for (int32_t f = 0; f < nf; ++f)
+        for (int k = 0; k < 3; ++k) {
+          const int32_t c = 3 * f + k, w = mid_wedge(f, k);
+          const int32_t a = parent.corner_wedge[size_t(next_corner(c))], b = parent.corner_wedge[size_t(prev_corner(c))];
+          ASSERT_GE(w, parent.num_wedges()) << name << " face " << f << " corner " << k;
+          ASSERT_EQ(out.wedge_vertex[size_t(w)], out.corner_vertex[3 * (4 * size_t(f) + 3) + size_t(k)]);
+          for (int i = 0; i < cc; ++i) {
+            const float expected = 0.5f * (uv0.data[size_t(a) * cc + i] + uv0.data[size_t(b) * cc + i]);
+            ASSERT_EQ(std::memcmp(&uv1.data[size_t(w) * cc + i], &expected, 4), 0)
+                << name << " face " << f << " corner " << k << " component " << i;
+          }
+          const int32_t o = ct.opposite(c);
+          if (o < 0 || o < c) continue;
+          // The other side: the same wedge where both sides carry the same two.
+          const bool same = parent.corner_wedge[size_t(next_corner(c))] == parent.corner_wedge[size_t(prev_corner(o))] &&
+                            parent.corner_wedge[size_t(prev_corner(c))] == parent.corner_wedge[size_t(next_corner(o))];
+          const int32_t wo = mid_wedge(o / 3, o % 3);
+          EXPECT_EQ(wo == w, same) << name << " edge of corners " << c << " and " << o;
+          (same ? shared_edges : seams) += threads == 1;
+        }
+    }
+    EXPECT_GT(seams, 0) << name;
+    if (std::string(name) == "Avocado.notex.glb") EXPECT_GT(shared_edges, 0);
+  }
+}
+
 // Tangents made orthogonal to the normal and unit length (orthogonalise_tangents,
 // run after recompute_normals), a block of wedges at a time, against the rule
 // one wedge at a time: random tangents, some of length zero, some parallel to
