@@ -4,17 +4,15 @@
 // With bit 128 of the second byte, the mesh carries normals and tangents
 // (and seams): the oracles below then compare them too, and the refined
 // mesh's smoothing groups and sums are checked against the rule.
-#include <array>
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
-#include <map>
-#include <utility>
-#include <vector>
 
 #include "core/corner_table.h"
 #include "core/cpu_features.h"
 #include "core/refine.h"
+#include "tests/normal_rule.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 4) return 0;
@@ -133,26 +131,10 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     if (ni < 0) __builtin_trap();
     const iteas::Array<int32_t> group = iteas::smoothing_groups(m, ni, 1);
     const iteas::Array<double> sums = iteas::smoothing_group_sums(m, group, 1);
-    const float* wn = m.channels[size_t(ni)].data.data();
-    std::map<std::pair<int32_t, std::array<uint32_t, 3>>, int32_t> first;
-    std::vector<double> expected(3 * size_t(m.num_wedges()), 0.0);
-    for (int32_t w = 0; w < m.num_wedges(); ++w) {
-      std::array<uint32_t, 3> bits;
-      std::memcpy(bits.data(), wn + 3 * size_t(w), sizeof(bits));
-      if (first.try_emplace(std::make_pair(m.wedge_vertex[w], bits), w).first->second != group[size_t(w)])
-        __builtin_trap();
-    }
-    for (int32_t f = 0; f < m.num_faces(); ++f) {
-      const float* a = &m.positions[3 * size_t(m.corner_vertex[3 * f])];
-      const float* b = &m.positions[3 * size_t(m.corner_vertex[3 * f + 1])];
-      const float* c = &m.positions[3 * size_t(m.corner_vertex[3 * f + 2])];
-      const double u[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
-      const double v[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
-      const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
-      for (int k = 0; k < 3; ++k)
-        for (int i = 0; i < 3; ++i) expected[3 * size_t(group[size_t(m.corner_wedge[3 * f + k])]) + i] += n[i];
-    }
-    if (sums.size() != expected.size() || std::memcmp(sums.data(), expected.data(), sums.size() * sizeof(double)) != 0)
+    const iteas::test::NormalRule rule = iteas::test::normal_rule(m, ni);
+    if (!std::equal(group.begin(), group.end(), rule.group.begin(), rule.group.end()) ||
+        sums.size() != rule.sums.size() ||
+        std::memcmp(sums.data(), rule.sums.data(), sums.size() * sizeof(double)) != 0)
       __builtin_trap();
   }
   if (data[2] & 16) {

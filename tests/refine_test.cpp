@@ -17,6 +17,7 @@
 #include "core/corner_table.h"
 #include "core/cpu_features.h"
 #include "core/refine.h"
+#include "tests/normal_rule.h"
 #include "tests/support.h"
 
 namespace iteas {
@@ -1323,62 +1324,10 @@ Channel normal_channel() {
   return normal;
 }
 
-// A wedge's normal as bits (+0 and -0 apart).
-std::array<uint32_t, 3> normal_bits(const Channel& normal, int32_t w) {
-  std::array<uint32_t, 3> b;
-  std::memcpy(b.data(), &normal.data[3 * size_t(w)], 12);
-  return b;
-}
-
-// What recompute_normals must give, by its rule: wedges grouped by (vertex,
-// normal bits) in a map, a group named by its first wedge; each group's
-// faces' cross products summed in face order (3 per wedge, at the group's
-// first wedge); each wedge's normal its group's sum normalised (a group with
-// a zero sum keeps its own normal, normalised).
-struct NormalRule {
-  std::vector<int32_t> group;
-  std::vector<double> sums;
-  std::vector<float> normals;
-};
-NormalRule normal_rule(const Mesh& m, int channel) {
-  const Channel& normal = m.channels[size_t(channel)];
-  const int32_t nw = m.num_wedges();
-  NormalRule r;
-  std::map<std::pair<int32_t, std::array<uint32_t, 3>>, int32_t> first;
-  for (int32_t w = 0; w < nw; ++w)
-    r.group.push_back(first.try_emplace(std::make_pair(m.wedge_vertex[w], normal_bits(normal, w)), w).first->second);
-  r.sums.assign(3 * size_t(nw), 0.0);
-  for (int32_t f = 0; f < m.num_faces(); ++f) {
-    const float* a = &m.positions[3 * size_t(m.corner_vertex[3 * f])];
-    const float* b = &m.positions[3 * size_t(m.corner_vertex[3 * f + 1])];
-    const float* c = &m.positions[3 * size_t(m.corner_vertex[3 * f + 2])];
-    const double u[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
-    const double v[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
-    const double n[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]};
-    for (int k = 0; k < 3; ++k) {
-      const int32_t g = r.group[size_t(m.corner_wedge[3 * f + k])];
-      for (int i = 0; i < 3; ++i) r.sums[3 * size_t(g) + i] += n[i];
-    }
-  }
-  r.normals.assign(normal.data.begin(), normal.data.end());
-  for (int32_t w = 0; w < nw; ++w) {
-    const double* n = &r.sums[3 * size_t(r.group[w])];
-    float* out = &r.normals[3 * size_t(w)];
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-    if (len > 0) {
-      for (int i = 0; i < 3; ++i) out[i] = float(n[i] / len);
-    } else {
-      const double l2 = std::sqrt(double(out[0]) * out[0] + double(out[1]) * out[1] + double(out[2]) * out[2]);
-      if (l2 > 0) for (int i = 0; i < 3; ++i) out[i] = float(out[i] / l2);
-    }
-  }
-  return r;
-}
-
 // recompute_normals and its parts on |m| against the rule, bit for bit, on
 // one and two threads.
 void expect_normals_by_the_rule(const Mesh& m, int channel) {
-  const NormalRule rule = normal_rule(m, channel);
+  const test::NormalRule rule = test::normal_rule(m, channel);
   for (int threads : {1, 2}) {
     SCOPED_TRACE(std::to_string(threads) + " threads");
     const Array<int32_t> group = smoothing_groups(m, channel, threads);
@@ -1442,7 +1391,7 @@ TEST(Refine, RecomputedNormalsFollowSmoothingGroups) {
   // Groups in all: the centre of 40 shares 5 values, +0 and -0 apart.
   std::set<std::array<uint32_t, 3>> centre_groups;
   for (int32_t w = 0; w < m.num_wedges(); ++w)
-    if (m.wedge_vertex[w] == 0) centre_groups.insert(normal_bits(m.channels[0], w));
+    if (m.wedge_vertex[w] == 0) centre_groups.insert(test::normal_bits(m.channels[0], w));
   EXPECT_EQ(centre_groups.size(), 5u);
   expect_normals_by_the_rule(m, 0);
 }
@@ -1546,7 +1495,7 @@ TEST(Refine, RecomputedNormalsOfFacesLikeChildrenWithSharedVertices) {
   face(lone, lone, other);
   m.channels.push_back(normal);
   ASSERT_EQ(m.num_faces() % 4, 1);
-  EXPECT_EQ(normal_rule(m, 0).normals[3 * size_t(lone) + 2], 1.0f);  // a zero sum: its own normal, unit length
+  EXPECT_EQ(test::normal_rule(m, 0).normals[3 * size_t(lone) + 2], 1.0f);  // a zero sum: its own normal, unit length
   expect_normals_by_the_rule(m, 0);
 }
 
@@ -1606,7 +1555,9 @@ TEST(Refine, UniformLevelMakesAWedgeForEachSideOfASeam) {
         }
     }
     EXPECT_GT(seams, 0) << name;
-    if (std::string(name) == "Avocado.notex.glb") EXPECT_GT(shared_edges, 0);
+    if (std::string(name) == "Avocado.notex.glb") {
+      EXPECT_GT(shared_edges, 0);
+    }
   }
 }
 
