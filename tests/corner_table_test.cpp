@@ -594,11 +594,11 @@ TEST(Angles, FastSummaryAgreesWithDoublePrecisionAngles) {
 // definition, on angles placed where it could go wrong: both sides of every
 // histogram bound (the float quotient t / 10.0f decides the bin), of the
 // threshold and of the crease exclusion, NaN, 0 and 180, and thresholds
-// that are themselves angles, lie between two floats, or are NaN. Blocks of every length mod 8: the faces
-// of a sphere, the last 0-15 of them dropped (their edges become boundaries,
-// which count nowhere); about a third of the edges take the angles listed,
-// the rest a pseudo-random one. (61,440 corners: both thread counts' pieces
-// of every loop differ.)
+// that are themselves angles, lie between two floats, or are NaN. Blocks of
+// every length mod 8: the faces of a sphere, the last 0-15 of them dropped
+// (their edges become boundaries, which count nowhere); about a third of the
+// edges take the angles listed, the rest a pseudo-random one. (61,440
+// corners: both thread counts' pieces of every loop differ.)
 TEST(Angles, SummaryTallyFollowsItsDefinition) {
   const Mesh sphere = test::icosphere(5);
   std::vector<float> special = {0.0f, 180.0f, std::nanf(""), 20.0f, 45.5f, 1e-30f, 5e-13f};
