@@ -670,14 +670,14 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
         const float* old = carried.theta;
         float* th = theta.data();
         for (int32_t f = int32_t(f0); f < int32_t(f1); ++f) {
-          bool kept[3];
+          unsigned kept;
           const int64_t from = carried.carried_corners(cv, f, kept);
           for (int k = 0; k < 3; ++k) {
             const int32_t c = 3 * f + k, d = opp[c];
             const bool first = d > c;  // else a boundary (-1), or done at the smaller corner
             // The angle carried for c, or -1 when there is none (an angle is
             // never negative; a carried NaN is a zero-area face's).
-            const float t = kept[k] ? old[3 * from + k] : -1.0f;
+            const float t = kept >> k & 1 ? old[3 * from + k] : -1.0f;
             if (!(t < 0.0f)) {
               th[c] = t;
               continue;

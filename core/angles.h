@@ -41,17 +41,15 @@ struct CarriedAngles {
   const int32_t* kept_from = nullptr;
   const uint8_t* touched = nullptr;
   // The rule for face f of the current mesh (cv: its corner -> vertex map):
-  // its face on the level before, or -1 when it changed; carried[k] tells
-  // whether corner k's edge (between the face's other two vertices) is
+  // its face on the level before, or -1 when it changed; bit k of |carried|
+  // tells whether corner k's edge (between the face's other two vertices) is
   // carried. The face's three touched flags are read once.
-  int64_t carried_corners(const int32_t* cv, int64_t f, bool carried[3]) const {
+  int64_t carried_corners(const int32_t* cv, int64_t f, unsigned& carried) const {
     const int64_t from = kept_from[f];
-    carried[0] = carried[1] = carried[2] = false;
+    carried = 0;
     if (from < 0) return -1;
-    const uint8_t t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
-    carried[0] = !(t1 | t2);
-    carried[1] = !(t2 | t0);
-    carried[2] = !(t0 | t1);
+    const unsigned t0 = touched[cv[3 * f]], t1 = touched[cv[3 * f + 1]], t2 = touched[cv[3 * f + 2]];
+    carried = unsigned(!(t1 | t2)) | unsigned(!(t2 | t0)) << 1 | unsigned(!(t0 | t1)) << 2;
     return from;
   }
 };
