@@ -35,5 +35,5 @@ ITEAS_TEST_MAX_FACES=4000 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1"
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" ITEAS_CORPUS=/nonexistent \
   build-tsan/tests/io_test --gtest_filter='Io.SeveralMeshes*:Io.DracoPrim*' --gtest_brief=1
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp" ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
-  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure node --test tests/js/server.test.mjs
+  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure,trim node --test tests/js/server.test.mjs
 echo "[test] all passed"

@@ -58,6 +58,14 @@ struct QueueLimits {
   // Memory (0: unbounded): a quarter for held uploads, the rest for running
   // jobs, each reserving its estimate and confined to it by a MemoryBudget.
   int64_t memory_limit = 0;
+  // Memory the jobs freed goes back to the system (malloc_trim) once no job
+  // has run for this long; 0: after every job. Kept, the next job reuses the
+  // pages instead of faulting them in afresh.
+  std::chrono::milliseconds trim_delay{1000};
+  // Freed memory held past this (the process's resident bytes beyond the
+  // heap in use) goes back at once, busy or not: 0 is min(256 MiB, an
+  // eighth of memory_limit), or 256 MiB without a memory limit.
+  int64_t keep_freed_bytes = 0;
 };
 
 enum class Admission { kAccepted, kQueueFull, kClosed, kTooBig, kUploadsFull };
@@ -90,11 +98,17 @@ class JobQueue {
 
   size_t queued() const;
   size_t running() const { return running_.load(); }
+  // Times freed memory went back to the system (malloc_trim).
+  int64_t trims() const { return trims_.load(); }
   std::map<std::string, int64_t> counts_by_state() const;
 
  private:
   void work();
   void expire_locked();
+  // Freed memory back to the system.
+  void trim();
+  // Whether the freed memory the process holds is past keep_freed_bytes.
+  bool holding_too_much() const;
 
   QueueLimits limits_;
   std::function<double()> now_ms_;
@@ -108,6 +122,10 @@ class JobQueue {
   int64_t reserved_ = 0;      // estimates of running jobs (under mu_)
   int64_t held_uploads_ = 0;  // input bytes of queued jobs (under mu_)
   bool closed_ = false;
+  // Idle since |idle_since_| with freed memory not yet trimmed (under mu_).
+  bool trim_due_ = false;
+  std::chrono::steady_clock::time_point idle_since_;
+  std::atomic<int64_t> trims_{0};
 };
 
 }  // namespace iteas

@@ -78,6 +78,8 @@ class Metrics {
          "iteas_memory_reserved_bytes " + std::to_string(q.reserved_bytes()) + "\n";
     s += "# HELP iteas_heap_bytes Heap held through operator new.\n# TYPE iteas_heap_bytes gauge\niteas_heap_bytes " +
          std::to_string(current_heap_bytes()) + "\n";
+    s += "# HELP iteas_heap_trims_total Times freed memory went back to the system.\n# TYPE iteas_heap_trims_total counter\n"
+         "iteas_heap_trims_total " + std::to_string(q.trims()) + "\n";
     s += "# HELP iteas_jobs Jobs held, by status.\n# TYPE iteas_jobs gauge\n";
     for (const auto& [state, n] : q.counts_by_state())
       s += "iteas_jobs{status=\"" + state + "\"} " + std::to_string(n) + "\n";
@@ -205,6 +207,7 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
        }},
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
+      {"trim-delay", integer(0, 3600 * 1000, &c->trim_delay_ms)},
       {"web-root", [c](const std::string& v) { c->web_root = v; return true; }},
       {"job-dir", [c](const std::string& v) { c->job_dir = v; return true; }},
       {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
@@ -260,6 +263,7 @@ int serve(const ServerConfig& cfg) {
   limits.ttl = std::chrono::seconds(cfg.job_ttl_s);
   limits.result_bytes_cap = size_t(cfg.result_bytes_cap);
   limits.memory_limit = cfg.memory_limit > 0 ? cfg.memory_limit : default_memory_limit();
+  limits.trim_delay = std::chrono::milliseconds(cfg.trim_delay_ms);
   JobQueue queue(limits, now_ms);
   const JobStore store(cfg.job_dir);
   {

@@ -21,6 +21,7 @@ struct ServerConfig {
   int64_t memory_limit = 0;        // bytes for uploads + work; 0: 3/4 of RAM or of the cgroup limit
   int grace_s = 30;                // SIGTERM: time running work gets to finish
   int read_timeout_s = 10;         // a stalled client is dropped after this
+  int trim_delay_ms = 1000;        // idle time before freed memory goes back; 0: after every job
   std::string web_root;             // the page at /; empty: <binary dir>/web when it exists
   std::string job_dir;              // shared job store (all replicas); empty: in memory only
   std::string api_key;             // empty: no authentication

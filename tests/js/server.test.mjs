@@ -306,6 +306,63 @@ maybe('openapi')('the OpenAPI document passes a standard linter and is served', 
   assert.equal(served, fs.readFileSync(path.join(SOURCE_DIR, 'proto/openapi.yaml'), 'utf8'));
 });
 
+// --- freed memory ---------------------------------------------------------------
+async function trims(s) {
+  const text = await (await fetch(`${s.url}/metrics`)).text();
+  const m = text.match(/^iteas_heap_trims_total (\d+)$/m);
+  assert.ok(m, 'iteas_heap_trims_total in /metrics');
+  return Number(m[1]);
+}
+
+// Polls the trim count until it reaches |want| (the worker trims after it has
+// answered) or 20 s pass; returns the last count.
+async function trimsReaching(s, want) {
+  let n = await trims(s);
+  for (let waited = 0; n < want && waited < 20000; waited += 25) {
+    await sleep(25);
+    n = await trims(s);
+  }
+  return n;
+}
+
+maybe('trim')('freed memory goes back after every job, once the server is idle, or not while jobs follow one another', async () => {
+  const body = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  const refine = async (s) => {
+    const r = await fetch(`${s.url}/v1/refine?mode=uniform&levels=2`, { method: 'POST', body, headers: { 'Content-Type': 'application/octet-stream' } });
+    assert.equal(r.status, 200);
+    await r.arrayBuffer();
+  };
+  // No delay: after every job.
+  const every = await startServer(['--workers', '1', '--trim-delay', '0']);
+  try {
+    for (let i = 0; i < 3; ++i) await refine(every);
+    assert.equal(await trimsReaching(every, 3), 3);
+  } finally {
+    assert.equal(await stopServer(every), 0);
+  }
+  // An hour's delay: the jobs reuse what the ones before them freed (a few MiB
+  // held, under the 256 MiB that would go back at once).
+  const kept = await startServer(['--workers', '2', '--trim-delay', '3600000']);
+  try {
+    for (let i = 0; i < 3; ++i) await refine(kept);
+    assert.equal(await trims(kept), 0);
+  } finally {
+    assert.equal(await stopServer(kept), 0);
+  }
+  // 200 ms: once the server has been idle that long, and once for the idle spell.
+  const idle = await startServer(['--workers', '2', '--trim-delay', '200']);
+  try {
+    await refine(idle);
+    assert.equal(await trimsReaching(idle, 1), 1);
+    await sleep(600);
+    assert.equal(await trims(idle), 1, 'one trim an idle spell');
+    await refine(idle);
+    assert.equal(await trimsReaching(idle, 2), 2, 'and one after the next job');
+  } finally {
+    assert.equal(await stopServer(idle), 0);
+  }
+});
+
 // --- resource bounds (hardening issue, point 3) -------------------------------
 function rssKiB(pid) {
   const m = fs.readFileSync(`/proc/${pid}/status`, 'utf8').match(/VmRSS:\s+(\d+)/);
