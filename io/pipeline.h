@@ -23,6 +23,12 @@ struct JobRequest {
   Options options;
   bool refine = true;         // false: convert only
   ReadLimits limits;
+  // Threads for the work around the core's loops: several meshes refined at
+  // once (one thread each) and several Draco payloads encoded at once. 0:
+  // options.refine.threads. The server gives 1, so that all a job allocates
+  // outside the core's loops stays on its own thread, under its memory
+  // budget (a cap per thread).
+  int outer_threads = 0;
 };
 
 struct JobHooks {

@@ -8,6 +8,7 @@
 #include <limits>
 
 #include "core/mesh.h"
+#include "core/parallel.h"
 #include "io/memory_budget.h"
 
 namespace iteas {
@@ -136,6 +137,11 @@ void JobQueue::drain(std::chrono::milliseconds grace) {
   workers_.clear();
 }
 
+std::map<int, int64_t> JobQueue::started_by_threads() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return started_by_threads_;
+}
+
 size_t JobQueue::queued() const {
   std::lock_guard<std::mutex> lock(mu_);
   return queue_.size();
@@ -177,6 +183,7 @@ void JobQueue::expire_locked() {
 void JobQueue::work() {
   while (true) {
     std::shared_ptr<Job> job;
+    int threads = 1;
     {
       std::unique_lock<std::mutex> lock(mu_);
       // FIFO, and the head starts only when its estimate fits beside the
@@ -208,6 +215,9 @@ void JobQueue::work() {
       queue_.pop_front();
       held_uploads_ -= int64_t(job->input.size());
       reserved_ += job->memory_estimate;
+      // Alone, a job gets the idle cores; beside others, one thread each.
+      threads = running_ == 0 && queue_.empty() ? resolve_threads(limits_.lone_job_threads) : 1;
+      ++started_by_threads_[threads];
       ++running_;
       trim_due_ = false;  // busy again: its pages are in use
     }
@@ -232,7 +242,10 @@ void JobQueue::work() {
     try {
       // Everything this job allocates on this thread counts against its estimate.
       MemoryBudget budget(limits_.memory_limit > 0 ? job->memory_estimate : std::numeric_limits<int64_t>::max());
-      status = job->cancel ? Status() : run_job(job->request, hooks, &result);
+      JobRequest request = job->request;
+      request.options.refine.threads = threads;
+      request.outer_threads = 1;
+      status = job->cancel ? Status() : run_job(request, hooks, &result);
     } catch (const MemoryLimitExceeded&) {
       result = JobResult();
       status = Status::Error(ErrorKind::kTooLarge, "memory_budget",

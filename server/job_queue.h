@@ -66,6 +66,11 @@ struct QueueLimits {
   // heap in use) goes back at once, busy or not: 0 is min(256 MiB, an
   // eighth of memory_limit), or 256 MiB without a memory limit.
   int64_t keep_freed_bytes = 0;
+  // Threads of the core a job gets when it starts with no other job running
+  // or waiting (0: all cores); any other job gets one. The result is the
+  // same on any number of threads; the work around the core's loops stays
+  // on the job's own thread (JobRequest::outer_threads), under its budget.
+  int lone_job_threads = 0;
 };
 
 enum class Admission { kAccepted, kQueueFull, kClosed, kTooBig, kUploadsFull };
@@ -100,6 +105,8 @@ class JobQueue {
   size_t running() const { return running_.load(); }
   // Times freed memory went back to the system (malloc_trim).
   int64_t trims() const { return trims_.load(); }
+  // Jobs started, by the threads of the core they got.
+  std::map<int, int64_t> started_by_threads() const;
   std::map<std::string, int64_t> counts_by_state() const;
 
  private:
@@ -126,6 +133,7 @@ class JobQueue {
   bool trim_due_ = false;
   std::chrono::steady_clock::time_point idle_since_;
   std::atomic<int64_t> trims_{0};
+  std::map<int, int64_t> started_by_threads_;  // (under mu_)
 };
 
 }  // namespace iteas

@@ -78,6 +78,9 @@ class Metrics {
          "iteas_memory_reserved_bytes " + std::to_string(q.reserved_bytes()) + "\n";
     s += "# HELP iteas_heap_bytes Heap held through operator new.\n# TYPE iteas_heap_bytes gauge\niteas_heap_bytes " +
          std::to_string(current_heap_bytes()) + "\n";
+    s += "# HELP iteas_jobs_started_total Jobs started, by the core's threads they got.\n# TYPE iteas_jobs_started_total counter\n";
+    for (const auto& [threads, n] : q.started_by_threads())
+      s += "iteas_jobs_started_total{threads=\"" + std::to_string(threads) + "\"} " + std::to_string(n) + "\n";
     s += "# HELP iteas_heap_trims_total Times freed memory went back to the system.\n# TYPE iteas_heap_trims_total counter\n"
          "iteas_heap_trims_total " + std::to_string(q.trims()) + "\n";
     s += "# HELP iteas_jobs Jobs held, by status.\n# TYPE iteas_jobs gauge\n";
@@ -208,6 +211,7 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
       {"trim-delay", integer(0, 3600 * 1000, &c->trim_delay_ms)},
+      {"lone-job-threads", integer(0, 256, &c->lone_job_threads)},
       {"web-root", [c](const std::string& v) { c->web_root = v; return true; }},
       {"job-dir", [c](const std::string& v) { c->job_dir = v; return true; }},
       {"api-key", [c](const std::string& v) { c->api_key = v; return true; }},
@@ -264,6 +268,7 @@ int serve(const ServerConfig& cfg) {
   limits.result_bytes_cap = size_t(cfg.result_bytes_cap);
   limits.memory_limit = cfg.memory_limit > 0 ? cfg.memory_limit : default_memory_limit();
   limits.trim_delay = std::chrono::milliseconds(cfg.trim_delay_ms);
+  limits.lone_job_threads = cfg.lone_job_threads;
   JobQueue queue(limits, now_ms);
   const JobStore store(cfg.job_dir);
   {
@@ -345,7 +350,7 @@ int serve(const ServerConfig& cfg) {
     if (!parse_options(pairs, &options, &error, &bad)) throw HttpError{400, "bad_option", error};
     if (options.refine.max_triangles > cfg.max_output_triangles) options.refine.max_triangles = cfg.max_output_triangles;
     if (options.out.output.empty()) options.out.output = "glb";
-    options.refine.threads = 1;  // parallelism comes from the worker pool
+    options.refine.threads = 1;  // the queue gives a job that runs alone the idle cores
     auto job = std::make_shared<Job>();
     job->id = new_id();
     job->listed = listed;
@@ -521,9 +526,10 @@ int serve(const ServerConfig& cfg) {
     logger->error("cannot listen on {}:{}", cfg.host, cfg.port);
     return 4;
   }
-  logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"memory_limit_mib":{})"
-                        : "listening on {}:{} with {} workers, memory limit {} MiB",
-               cfg.host, port, workers, limits.memory_limit >> 20);
+  logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"lone_job_threads":{},"memory_limit_mib":{},"trim_delay_ms":{})"
+                        : "listening on {}:{} with {} workers ({} threads for a job alone), memory limit {} MiB, trim delay {} ms",
+               cfg.host, port, workers, resolve_threads(limits.lone_job_threads), limits.memory_limit >> 20,
+               cfg.trim_delay_ms);
   std::thread http([&] { svr.listen_after_bind(); });
 
   int sig = 0;

@@ -22,6 +22,7 @@ struct ServerConfig {
   int grace_s = 30;                // SIGTERM: time running work gets to finish
   int read_timeout_s = 10;         // a stalled client is dropped after this
   int trim_delay_ms = 1000;        // idle time before freed memory goes back; 0: after every job
+  int lone_job_threads = 0;        // a job alone in the queue gets these threads; 0: all cores
   std::string web_root;             // the page at /; empty: <binary dir>/web when it exists
   std::string job_dir;              // shared job store (all replicas); empty: in memory only
   std::string api_key;             // empty: no authentication

@@ -363,6 +363,54 @@ maybe('trim')('freed memory goes back after every job, once the server is idle, 
   }
 });
 
+// --- threads a job gets -----------------------------------------------------------
+async function startedByThreads(s) {
+  const text = await (await fetch(`${s.url}/metrics`)).text();
+  const out = {};
+  for (const m of text.matchAll(/^iteas_jobs_started_total\{threads="(\d+)"\} (\d+)$/gm)) out[m[1]] = Number(m[2]);
+  return out;
+}
+
+maybe('threads')('a job that runs alone gets the idle cores, one beside another gets one thread, and both give the same mesh', async () => {
+  const s = await startServer(['--workers', '2', '--lone-job-threads', '2']);
+  try {
+    const bunny = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+    const post = (route, query) => fetch(`${s.url}${route}?${query}`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
+    // A long job (3.8 million triangles, Draco-encoded: seconds), alone.
+    const long = await post('/v1/jobs', 'mode=uniform&levels=5');
+    assert.equal(long.status, 202);
+    const loc = long.headers.get('location');
+    let state = 'queued';
+    for (let i = 0; i < 600 && state === 'queued'; i++) {
+      state = (await (await fetch(s.url + loc)).json()).status;
+      if (state === 'queued') await sleep(20);
+    }
+    assert.equal(state, 'running');
+    // Beside it: one thread.
+    const beside = await post('/v1/refine', 'levels=3');
+    assert.equal(beside.status, 200);
+    const besideBytes = Buffer.from(await beside.arrayBuffer());
+    assert.equal((await (await fetch(s.url + loc)).json()).status, 'running', 'the long job outlasted the other');
+    for (let i = 0; i < 6000 && (await (await fetch(s.url + loc)).json()).status === 'running'; i++) await sleep(20);
+    // Alone again: two threads, the same bytes.
+    const alone = await post('/v1/refine', 'levels=3');
+    assert.equal(alone.status, 200);
+    const aloneBytes = Buffer.from(await alone.arrayBuffer());
+    // (The statistics in asset.extras carry timings: the rest must match.)
+    const glb = (b) => {
+      const n = b.readUInt32LE(12);
+      const json = JSON.parse(b.subarray(20, 20 + n).toString('utf8'));
+      delete json.asset.extras;
+      return { json, bin: b.subarray(20 + n) };
+    };
+    assert.deepEqual(glb(aloneBytes).json, glb(besideBytes).json);
+    assert.ok(glb(aloneBytes).bin.equals(glb(besideBytes).bin), 'one thread and two give the same mesh');
+    assert.deepEqual(await startedByThreads(s), { 1: 1, 2: 2 });
+  } finally {
+    assert.equal(await stopServer(s), 0);
+  }
+});
+
 // --- resource bounds (hardening issue, point 3) -------------------------------
 function rssKiB(pid) {
   const m = fs.readFileSync(`/proc/${pid}/status`, 'utf8').match(/VmRSS:\s+(\d+)/);
