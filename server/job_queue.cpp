@@ -215,8 +215,16 @@ void JobQueue::work() {
       queue_.pop_front();
       held_uploads_ -= int64_t(job->input.size());
       reserved_ += job->memory_estimate;
-      // Alone, a job gets the idle cores; beside others, one thread each.
-      threads = running_ == 0 && queue_.empty() ? resolve_threads(limits_.lone_job_threads) : 1;
+      // The cores no running job holds, less one for each waiting job an
+      // idle worker could start now (at least one, at most
+      // lone_job_threads): a job alone gets every core and one beside others
+      // one, as do they; a lone worker's job gets every core even with jobs
+      // waiting (they could not start before it ends anyway).
+      const int64_t idle_workers = std::max<int64_t>(0, int64_t(std::max(1, limits_.workers)) - int64_t(running_) - 1);
+      const int64_t startable = std::min<int64_t>(int64_t(queue_.size()), idle_workers);
+      const int64_t free_cores = int64_t(hardware_threads()) - cores_in_use_ - startable;
+      threads = int(std::clamp<int64_t>(free_cores, 1, resolve_threads(limits_.lone_job_threads)));
+      cores_in_use_ += threads;
       ++started_by_threads_[threads];
       ++running_;
       trim_due_ = false;  // busy again: its pages are in use
@@ -283,6 +291,7 @@ void JobQueue::work() {
     {
       std::lock_guard<std::mutex> lock(mu_);
       reserved_ -= job->memory_estimate;
+      cores_in_use_ -= threads;
       --running_;
       // The last job of a busy spell: its memory goes back once the queue
       // has stayed idle for trim_delay (work() above). While jobs follow

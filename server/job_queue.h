@@ -66,10 +66,12 @@ struct QueueLimits {
   // heap in use) goes back at once, busy or not: 0 is min(256 MiB, an
   // eighth of memory_limit), or 256 MiB without a memory limit.
   int64_t keep_freed_bytes = 0;
-  // Threads of the core a job gets when it starts with no other job running
-  // or waiting (0: all cores); any other job gets one. The result is the
-  // same on any number of threads; the work around the core's loops stays
-  // on the job's own thread (JobRequest::outer_threads), under its budget.
+  // The most threads of the core a job gets (0: all cores). A job gets the
+  // cores no running job holds, less one for each waiting job an idle
+  // worker could start, and at least one: alone, every core; beside
+  // others, one. The result is the same on any number of threads; the work
+  // around the core's loops stays on the job's own thread
+  // (JobRequest::outer_threads), under its budget.
   int lone_job_threads = 0;
 };
 
@@ -134,6 +136,7 @@ class JobQueue {
   std::chrono::steady_clock::time_point idle_since_;
   std::atomic<int64_t> trims_{0};
   std::map<int, int64_t> started_by_threads_;  // (under mu_)
+  int64_t cores_in_use_ = 0;                   // threads of the running jobs (under mu_)
 };
 
 }  // namespace iteas

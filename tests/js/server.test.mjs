@@ -409,6 +409,23 @@ maybe('threads')('a job that runs alone gets the idle cores, one beside another 
   } finally {
     assert.equal(await stopServer(s), 0);
   }
+  // One worker: a job waiting behind another could not start anyway, so the
+  // one running keeps both cores, backlog or not.
+  const one = await startServer(['--workers', '1', '--lone-job-threads', '2']);
+  try {
+    const bunny = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+    const locs = [];
+    for (const query of ['mode=uniform&levels=4&compression=none', 'levels=2', 'levels=2']) {
+      const r = await fetch(`${one.url}/v1/jobs?${query}`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
+      assert.equal(r.status, 202);
+      locs.push(r.headers.get('location'));
+    }
+    for (const loc of locs)
+      for (let i = 0; i < 6000 && (await (await fetch(one.url + loc)).json()).status !== 'done'; i++) await sleep(20);
+    assert.deepEqual(await startedByThreads(one), { 2: 3 });
+  } finally {
+    assert.equal(await stopServer(one), 0);
+  }
 });
 
 // --- resource bounds (hardening issue, point 3) -------------------------------
