@@ -527,7 +527,7 @@ int serve(const ServerConfig& cfg) {
     return 4;
   }
   logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"lone_job_threads":{},"memory_limit_mib":{},"trim_delay_ms":{})"
-                        : "listening on {}:{} with {} workers ({} threads for a job alone), memory limit {} MiB, trim delay {} ms",
+                        : "listening on {}:{} with {} workers (at most {} threads a job), memory limit {} MiB, trim delay {} ms",
                cfg.host, port, workers, resolve_threads(limits.lone_job_threads), limits.memory_limit >> 20,
                cfg.trim_delay_ms);
   std::thread http([&] { svr.listen_after_bind(); });
