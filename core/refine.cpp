@@ -1633,12 +1633,11 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
         const int32_t* const op = opp;
         const int32_t* const corners = cv;
         const float* const before = old;
-        const bool carry = reuse;
-        const CarriedAngles rule = edges;
+        const CarriedAngles rule = edges;  // (no kept_from when nothing is carried)
         int64_t n = 0;
         for (int64_t f = b; f < e; ++f) {
           unsigned kept = 0;
-          const int64_t from = carry ? rule.carried_corners(corners, f, kept) : -1;
+          const int64_t from = rule.kept_from ? rule.carried_corners(corners, f, kept) : -1;
           const unsigned here = unsigned(vd[f] >= kJudgeTolerance);
           unsigned bits = 0;
           for (int k = 0; k < 3; ++k) {

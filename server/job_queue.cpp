@@ -40,6 +40,8 @@ nlohmann::json Job::status_json_locked() const {
 
 JobQueue::JobQueue(const QueueLimits& limits, std::function<double()> now_ms)
     : limits_(limits), now_ms_(std::move(now_ms)) {
+  if (limits_.keep_freed_bytes <= 0)
+    limits_.keep_freed_bytes = limits_.memory_limit > 0 ? std::min<int64_t>(256 << 20, limits_.memory_limit / 8) : 256 << 20;
   for (int i = 0; i < std::max(1, limits_.workers); ++i) workers_.emplace_back([this] { work(); });
 }
 
@@ -304,7 +306,6 @@ void JobQueue::work() {
         trim_due_ = true;
         idle_since_ = std::chrono::steady_clock::now();
       }
-      if (trim_now) trim_due_ = false;
       wake_.notify_all();
     }
     if (trim_now) trim();
@@ -318,8 +319,6 @@ void JobQueue::trim() {
 }
 
 bool JobQueue::holding_too_much() const {
-  int64_t cap = limits_.keep_freed_bytes;
-  if (cap <= 0) cap = limits_.memory_limit > 0 ? std::min<int64_t>(256 << 20, limits_.memory_limit / 8) : 256 << 20;
   // Resident pages beyond the heap in use: what the allocator keeps freed,
   // plus the program itself and its stacks (counted as held: a little
   // early, never late).
@@ -329,7 +328,7 @@ bool JobQueue::holding_too_much() const {
     std::fclose(f);
   }
   const int64_t rss = int64_t(resident) * int64_t(sysconf(_SC_PAGESIZE));
-  return rss - current_heap_bytes() > cap;
+  return rss - current_heap_bytes() > limits_.keep_freed_bytes;
 }
 
 }  // namespace iteas

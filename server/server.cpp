@@ -350,7 +350,6 @@ int serve(const ServerConfig& cfg) {
     if (!parse_options(pairs, &options, &error, &bad)) throw HttpError{400, "bad_option", error};
     if (options.refine.max_triangles > cfg.max_output_triangles) options.refine.max_triangles = cfg.max_output_triangles;
     if (options.out.output.empty()) options.out.output = "glb";
-    options.refine.threads = 1;  // the queue gives a job that runs alone the idle cores
     auto job = std::make_shared<Job>();
     job->id = new_id();
     job->listed = listed;
