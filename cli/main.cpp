@@ -20,8 +20,8 @@ constexpr int kExitOk = 0, kExitUsage = 2, kExitBadInput = 3, kExitIo = 4;
 
 const char* kUsage =
     "usage:\n"
-    "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--quiet]\n"
-    "  iteas convert IN OUT [output options]\n"
+    "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--memory-limit B|nK|nM|nG] [--quiet]\n"
+    "  iteas convert IN OUT [output options] [--memory-limit B|nK|nM|nG]\n"
     "  iteas inspect IN\n"
     "  iteas serve [--host H] [--port P] [--workers N] [--queue N] [--max-upload-bytes B]\n"
     "              [--max-output-triangles N] [--request-timeout S] [--job-ttl S] [--result-bytes-cap B]\n"
@@ -86,10 +86,14 @@ double now_ms() {
   return duration<double, std::milli>(steady_clock::now().time_since_epoch()).count();
 }
 
+int refine_or_convert(const std::string& in, const std::string& out, const std::string& stats_path,
+                      const std::string& out_format, const iteas::Options& options, bool refine, bool quiet);
+
 // refine and convert share everything but the refinement itself.
 int run(const std::vector<std::string>& args, bool refine) {
   std::string in, out, stats_path;
   bool quiet = false;
+  int64_t memory_limit = 0;  // 0: default_memory_limit()
   std::vector<std::pair<std::string, std::string>> pairs;
   for (size_t i = 0; i < args.size(); ++i) {
     const std::string& a = args[i];
@@ -104,6 +108,11 @@ int run(const std::vector<std::string>& args, bool refine) {
       if (!value(&stats_path)) return usage("--stats needs a file or -");
     } else if (a == "--quiet" || a == "-q") {
       quiet = true;
+    } else if (a == "--memory-limit" || a.rfind("--memory-limit=", 0) == 0) {
+      std::string v = a.size() > 14 ? a.substr(15) : "";
+      if (a.size() == 14 && !value(&v)) return usage("--memory-limit needs a size");
+      if (!iteas::parse_byte_size(v, &memory_limit))
+        return usage("--memory-limit: expected bytes, or a number with K, M or G, got '" + v + "'");
     } else if (a.rfind("--", 0) == 0 && a.size() > 2) {
       std::string name = a.substr(2), v;
       const size_t eq = name.find('=');
@@ -126,6 +135,25 @@ int run(const std::vector<std::string>& args, bool refine) {
   if (out_format != "glb" && out_format != "gltf" && out_format != "drc" && out_format != "obj" && out_format != "ply")
     return usage("cannot tell the output format from '" + out + "': use .glb .gltf .drc .obj .ply or --output");
 
+  // Everything the job holds counts against the limit, the input's bytes too:
+  // past it the job stops with a message, where the kernel would kill it.
+  if (memory_limit <= 0) memory_limit = iteas::default_memory_limit();
+  iteas::set_process_heap_limit(memory_limit);
+  try {
+    return refine_or_convert(in, out, stats_path, out_format, options, refine, quiet);
+  } catch (const iteas::MemoryLimitExceeded&) {
+    std::fprintf(stderr,
+                 "iteas: %s: the job needs more memory than its limit of %lld MiB (--memory-limit; by default 3/4 of "
+                 "the machine's memory or of its container's limit): lower --max-triangles or --levels "
+                 "(memory_limit)\n",
+                 in.c_str(), static_cast<long long>(memory_limit >> 20));
+    return kExitBadInput;
+  }
+}
+
+// run()'s job once its arguments are checked.
+int refine_or_convert(const std::string& in, const std::string& out, const std::string& stats_path,
+                      const std::string& out_format, const iteas::Options& options, bool refine, bool quiet) {
   std::vector<uint8_t> bytes;
   if (!read_file(in, &bytes)) {
     std::fprintf(stderr, "iteas: cannot read %s\n", in.c_str());

@@ -114,7 +114,7 @@ bool parse_options(const std::vector<std::pair<std::string, std::string>>& pairs
       else return fail(name, "expected a fraction of the bounding-box diagonal in (0, 1] or off");
     } else if (name == "max_triangles") {
       if (!parse_int(value, &i) || i < 1) return fail(name, "expected a positive integer");
-      o->refine.max_triangles = i;
+      o->refine.max_triangles = std::min<int64_t>(i, kMaxTriangles);
     } else if (name == "tension") {
       if (!parse_double(value, &d) || d < 0 || d > 1.0 / 16.0) return fail(name, "expected 0 <= w <= 0.0625");
       o->refine.tension = d;

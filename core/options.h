@@ -41,6 +41,11 @@ struct RefineOptions {
   int threads = 0;  // 0 = all cores
 };
 
+// The most triangles a mesh may have: its corners are indexed by 32-bit
+// signed integers, three a triangle. A larger max_triangles is capped to it
+// (as the server caps it to its own limit), and refine_mesh caps it too.
+inline constexpr int64_t kMaxTriangles = 715827882;  // (2^31 - 1) / 3
+
 // 2^-1/2: a bend falling at less than half the smooth-surface rate, in octaves
 // (the modified Butterfly halves θ per level on a smooth surface).
 inline constexpr double kStallRatioDefault = 0.70710678118654752;

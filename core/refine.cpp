@@ -1790,7 +1790,11 @@ int64_t mesh_bytes(const Mesh& m) {
 constexpr double kScatteredOrder = 0.005;
 constexpr int64_t kSortOneLevelFaces = 49152;
 
-RefineResult refine_mesh(Mesh& m, const RefineOptions& o, const RefineHooks& hooks, RefineStats* st) {
+RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHooks& hooks, RefineStats* st) {
+  // The budget never past what 32-bit corner indices can number (as
+  // parse_options caps it too).
+  RefineOptions o = options;
+  o.max_triangles = std::min(o.max_triangles, kMaxTriangles);
   RefineStats& stats = *st;
   stats = RefineStats();
   auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };

@@ -12,7 +12,8 @@
 namespace iteas {
 
 // A GLB file: header, JSON chunk (space-padded) and, when |bin| is given, a BIN
-// chunk (zero-padded).
+// chunk (zero-padded). Empty when the file would pass the 4 GiB its 32-bit
+// length field can hold (a GLB is never empty).
 std::vector<uint8_t> pack_glb(const std::string& json, const uint8_t* bin, size_t bin_size);
 
 // Maps bit-identical positions (with -0 equal to +0) to one vertex index.

@@ -389,6 +389,8 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
   const std::string jt_text = jt.dump();
   if (binary) {
     const std::vector<uint8_t> glb = pack_glb(jt_text, bin, bin_size);
+    if (glb.empty())
+      return Status::Error(ErrorKind::kTooLarge, "too_large", "the glTF's JSON and buffer pass the 4 GiB a GLB can hold");
     ok = loader.LoadBinaryFromMemory(&model, &err, &warn, glb.data(), unsigned(glb.size()), "");
   } else {
     ok = loader.LoadASCIIFromString(&model, &err, &warn, jt_text.c_str(), unsigned(jt_text.size()), "");

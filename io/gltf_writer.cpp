@@ -514,6 +514,10 @@ Status write_gltf(const Document& doc, const OutputOptions& opt, bool binary, co
     return Status::Ok();
   }
   *out = pack_glb(text, bin.empty() ? nullptr : bin.data(), bin.size());
+  if (out->empty())
+    return Status::Error(ErrorKind::kTooLarge, "output_too_large",
+                         "the output needs " + std::to_string((text.size() + bin.size()) >> 20) +
+                             " MiB, over the 4 GiB a GLB file can hold: use Draco compression or a lower max_triangles");
   return Status::Ok();
 }
 

@@ -1,9 +1,13 @@
 #include "io/memory_budget.h"
 
 #include <malloc.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cctype>
+#include <cerrno>
 #include <cstddef>
+#include <cstdio>
 #include <atomic>
 #include <cstdlib>
 #include <limits>
@@ -14,6 +18,7 @@ namespace iteas {
 namespace {
 
 std::atomic<int64_t> g_current{0}, g_peak{0};
+std::atomic<int64_t> g_limit{std::numeric_limits<int64_t>::max()};  // the process's cap
 thread_local int64_t t_net = 0;  // bytes this thread allocated minus what it freed
 thread_local int64_t t_cap = std::numeric_limits<int64_t>::max();  // t_net may not pass this
 thread_local bool t_exceeded = false;
@@ -35,7 +40,8 @@ std::unordered_map<void*, int64_t>& aligned_charges() {
 
 void* allocate(std::size_t n, std::size_t align = 0) {
   // Refuse before asking the system: a bomb's 8 GB request never reaches malloc.
-  if (n > std::size_t(std::numeric_limits<int64_t>::max() / 2) || t_net + int64_t(n) > t_cap) {
+  if (n > std::size_t(std::numeric_limits<int64_t>::max() / 2) || t_net + int64_t(n) > t_cap ||
+      g_current.load(std::memory_order_relaxed) + int64_t(n) > g_limit.load(std::memory_order_relaxed)) {
     t_exceeded = true;
     throw MemoryLimitExceeded();
   }
@@ -95,6 +101,37 @@ void release_aligned(void* p) noexcept {
 void keep_freed_memory() {
   mallopt(M_MMAP_THRESHOLD, 32 << 20);
   mallopt(M_TRIM_THRESHOLD, 128 << 20);
+}
+
+void set_process_heap_limit(int64_t bytes) {
+  g_limit.store(bytes > 0 ? bytes : std::numeric_limits<int64_t>::max(), std::memory_order_relaxed);
+}
+
+int64_t process_heap_limit() {
+  const int64_t limit = g_limit.load(std::memory_order_relaxed);
+  return limit == std::numeric_limits<int64_t>::max() ? 0 : limit;
+}
+
+int64_t default_memory_limit() {
+  int64_t total = int64_t(sysconf(_SC_PHYS_PAGES)) * int64_t(sysconf(_SC_PAGESIZE));
+  if (FILE* f = std::fopen("/sys/fs/cgroup/memory.max", "r")) {
+    long long v = 0;
+    if (std::fscanf(f, "%lld", &v) == 1 && v > 0 && v < total) total = v;  // "max" reads as no number
+    std::fclose(f);
+  }
+  return total / 4 * 3;
+}
+
+bool parse_byte_size(const std::string& text, int64_t* bytes) {
+  if (text.empty() || !std::isdigit(static_cast<unsigned char>(text[0]))) return false;
+  char* end = nullptr;
+  errno = 0;
+  const long long x = std::strtoll(text.c_str(), &end, 10);
+  const std::string unit = end;
+  const int shift = unit.empty() ? 0 : unit == "K" ? 10 : unit == "M" ? 20 : unit == "G" ? 30 : -1;
+  if (errno != 0 || shift < 0 || x > (1LL << 50) >> shift) return false;
+  *bytes = int64_t(x) << shift;
+  return true;
 }
 
 int64_t current_heap_bytes() { return g_current.load(std::memory_order_relaxed); }

@@ -11,6 +11,7 @@
 
 #include <cstdint>
 #include <new>
+#include <string>
 
 namespace iteas {
 
@@ -32,6 +33,23 @@ void reset_peak_heap_bytes();
 // start by the binary; the server gives the memory back after each job
 // (malloc_trim).
 void keep_freed_memory();
+
+// A cap on all the process holds through operator new, on every thread
+// (<= 0: none, the default): past it, operator new throws
+// MemoryLimitExceeded instead of asking the system. The CLI sets it
+// (--memory-limit, by default default_memory_limit()), so that a job too
+// large for the machine stops with a message instead of being killed by the
+// kernel's out-of-memory killer.
+void set_process_heap_limit(int64_t bytes);
+int64_t process_heap_limit();  // 0: none
+
+// Three quarters of the machine's memory, or of its container's limit (cgroup
+// v2 memory.max) when that is lower: what a process of ours may plan on.
+int64_t default_memory_limit();
+
+// A size in bytes as the flags give it: digits, optionally followed by K, M or
+// G (binary multiples), at most 2^50 bytes. False for anything else.
+bool parse_byte_size(const std::string& text, int64_t* bytes);
 
 // While alive, this thread may hold at most |limit| more bytes than when the
 // scope began. Scopes nest (the tighter cap wins). Not copyable.

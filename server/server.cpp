@@ -163,16 +163,6 @@ thread_local std::string t_request_id;
 
 }  // namespace
 
-int64_t default_memory_limit() {
-  int64_t total = int64_t(sysconf(_SC_PHYS_PAGES)) * int64_t(sysconf(_SC_PAGESIZE));
-  if (FILE* f = std::fopen("/sys/fs/cgroup/memory.max", "r")) {
-    long long v = 0;
-    if (std::fscanf(f, "%lld", &v) == 1 && v > 0 && v < total) total = v;  // "max" reads as no number
-    std::fclose(f);
-  }
-  return total / 4 * 3;
-}
-
 // --- flags -----------------------------------------------------------------------
 bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, std::string* error) {
   struct Flag {
@@ -195,19 +185,11 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
       {"queue", integer(1, 100000, &c->queue)},
       {"http-threads", integer(0, 4096, &c->http_threads)},
       {"max-upload-bytes", integer(1, int64_t(1) << 40, &c->max_upload_bytes)},
-      {"max-output-triangles", integer(1, int64_t(1) << 40, &c->max_output_triangles)},
+      {"max-output-triangles", integer(1, kMaxTriangles, &c->max_output_triangles)},
       {"request-timeout", integer(1, 86400, &c->request_timeout_s)},
       {"job-ttl", integer(1, 30 * 86400, &c->job_ttl_s)},
       {"result-bytes-cap", integer(0, int64_t(1) << 40, &c->result_bytes_cap)},
-      {"memory-limit", [c](const std::string& v) {  // bytes, or with a K/M/G suffix
-         char* end = nullptr;
-         long long x = std::strtoll(v.c_str(), &end, 10);
-         const std::string unit = end ? std::string(end) : "";
-         const int shift = unit == "" ? 0 : unit == "K" ? 10 : unit == "M" ? 20 : unit == "G" ? 30 : -1;
-         if (v.empty() || shift < 0 || x < 0 || x > (1LL << 50) >> shift) return false;
-         c->memory_limit = int64_t(x) << shift;
-         return true;
-       }},
+      {"memory-limit", [c](const std::string& v) { return parse_byte_size(v, &c->memory_limit); }},  // bytes, or K/M/G
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
       {"trim-delay", integer(0, 3600 * 1000, &c->trim_delay_ms)},

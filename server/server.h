@@ -33,9 +33,6 @@ struct ServerConfig {
 // equivalent (flags win). Returns false with |error| set on a bad flag.
 bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* config, std::string* error);
 
-// 3/4 of the smaller of physical memory and the cgroup v2 memory.max.
-int64_t default_memory_limit();
-
 // Runs until SIGTERM/SIGINT, then drains. Returns the process exit code.
 int serve(const ServerConfig& config);
 

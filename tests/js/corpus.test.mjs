@@ -6,7 +6,7 @@ import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import path from 'node:path';
 import {
-  HAVE_CORPUS, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
+  HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
 } from './check.mjs';
 
 // ITEAS_JS_ONLY=broken runs only the broken-input test (used with the ASan build).
@@ -120,4 +120,25 @@ maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
   assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--bogus', '1']).code, 2);
   assert.equal(iteas(['frobnicate']).code, 2);
   assert.equal(iteas(['refine', path.join(tmp, 'does-not-exist.glb'), '-o', path.join(tmp, 'y.glb')]).code, 4);
+  for (const bad of ['12Q', '5MB', '-1', ''])
+    assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--memory-limit', bad]).code, 2, bad);
+});
+
+// A job past the memory limit stops with one line and exit 3, writing nothing
+// (without the limit, uniform level 8 of bun_zipper with no triangle budget
+// grew until the kernel killed the process); a smaller job finishes under it.
+// Level 5 (3.8 million triangles) needs more than 64 MiB and finishes without
+// the limit, so this fails rather than exhausts the machine if it is ignored.
+maybe('usage')('a job past --memory-limit stops with a message and no output', () => {
+  const input = path.join(DATA, 'bunny-npm.obj');
+  const out = path.join(tmp, 'memory-limit.glb');
+  const r = iteas(['refine', input, '-o', out, '--mode', 'uniform', '--levels', '5', '--memory-limit', '64M']);
+  assert.equal(r.code, 3, r.stderr);
+  assert.match(r.stderr.trim(), /^iteas: .+bunny-npm\.obj: the job needs more memory than its limit of 64 MiB .+ \(memory_limit\)$/);
+  assert.equal(r.stderr.trim().split('\n').length, 1, r.stderr);
+  assert.ok(!fs.existsSync(out));
+  const ok = iteas(['refine', input, '-o', out, '--mode', 'uniform', '--levels', '2', '--memory-limit=64M', '--stats', '-', '--quiet']);
+  assert.equal(ok.code, 0, ok.stderr);
+  assert.equal(JSON.parse(ok.stdout).output.triangles, 3674 * 16);
+  assert.ok(fs.existsSync(out));
 });
