@@ -22,7 +22,7 @@ const char* kUsage =
     "usage:\n"
     "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--memory-limit B|nK|nM|nG] [--quiet]\n"
     "  iteas convert IN OUT [output options] [--memory-limit B|nK|nM|nG]\n"
-    "  iteas inspect IN\n"
+    "  iteas inspect IN [--memory-limit B|nK|nM|nG]\n"
     "  iteas serve [--host H] [--port P] [--workers N] [--queue N] [--max-upload-bytes B]\n"
     "              [--max-output-triangles N] [--request-timeout S] [--job-ttl S] [--result-bytes-cap B]\n"
     "              [--grace S] [--read-timeout S] [--api-key K] [--log-format text|json]\n"
@@ -89,6 +89,40 @@ double now_ms() {
 int refine_or_convert(const std::string& in, const std::string& out, const std::string& stats_path,
                       const std::string& out_format, const iteas::Options& options, bool refine, bool quiet);
 
+// Runs |job| (a command's work on the file |in|) with all the process holds
+// capped at |limit| bytes (0: default_memory_limit()), its input's bytes
+// included: past it the job stops with one line and exit 3, where the kernel
+// would kill the process. |hint| (may be empty) says what to lower.
+template <typename Job>
+int under_memory_limit(const std::string& in, int64_t limit, const std::string& hint, const Job& job) {
+  if (limit <= 0) limit = iteas::default_memory_limit();
+  iteas::set_process_heap_limit(limit);
+  try {
+    return job();
+  } catch (const iteas::MemoryLimitExceeded&) {
+    const std::string size = limit >= (1 << 20) ? std::to_string(limit >> 20) + " MiB" : std::to_string(limit) + " bytes";
+    std::fprintf(stderr,
+                 "iteas: %s: the job needs more memory than its limit of %s (--memory-limit; by default 3/4 of "
+                 "the machine's memory or of its container's limit)%s%s (memory_limit)\n",
+                 in.c_str(), size.c_str(), hint.empty() ? "" : ": ", hint.c_str());
+    return kExitBadInput;
+  }
+}
+
+// --memory-limit SIZE or --memory-limit=SIZE at args[i] (true, with i moved
+// past its value); false for any other argument. |error| is set on a bad size.
+bool memory_limit_flag(const std::vector<std::string>& args, size_t& i, int64_t* limit, std::string* error) {
+  const std::string& a = args[i];
+  if (a != "--memory-limit" && a.rfind("--memory-limit=", 0) != 0) return false;
+  std::string v;
+  if (a.size() > 14) v = a.substr(15);
+  else if (i + 1 < args.size()) v = args[++i];
+  else *error = "--memory-limit needs a size";
+  if (error->empty() && !iteas::parse_byte_size(v, limit))
+    *error = "--memory-limit: expected bytes, or a number with K, M or G, got '" + v + "'";
+  return true;
+}
+
 // refine and convert share everything but the refinement itself.
 int run(const std::vector<std::string>& args, bool refine) {
   std::string in, out, stats_path;
@@ -108,11 +142,8 @@ int run(const std::vector<std::string>& args, bool refine) {
       if (!value(&stats_path)) return usage("--stats needs a file or -");
     } else if (a == "--quiet" || a == "-q") {
       quiet = true;
-    } else if (a == "--memory-limit" || a.rfind("--memory-limit=", 0) == 0) {
-      std::string v = a.size() > 14 ? a.substr(15) : "";
-      if (a.size() == 14 && !value(&v)) return usage("--memory-limit needs a size");
-      if (!iteas::parse_byte_size(v, &memory_limit))
-        return usage("--memory-limit: expected bytes, or a number with K, M or G, got '" + v + "'");
+    } else if (std::string error; memory_limit_flag(args, i, &memory_limit, &error)) {
+      if (!error.empty()) return usage(error);
     } else if (a.rfind("--", 0) == 0 && a.size() > 2) {
       std::string name = a.substr(2), v;
       const size_t eq = name.find('=');
@@ -135,20 +166,8 @@ int run(const std::vector<std::string>& args, bool refine) {
   if (out_format != "glb" && out_format != "gltf" && out_format != "drc" && out_format != "obj" && out_format != "ply")
     return usage("cannot tell the output format from '" + out + "': use .glb .gltf .drc .obj .ply or --output");
 
-  // Everything the job holds counts against the limit, the input's bytes too:
-  // past it the job stops with a message, where the kernel would kill it.
-  if (memory_limit <= 0) memory_limit = iteas::default_memory_limit();
-  iteas::set_process_heap_limit(memory_limit);
-  try {
-    return refine_or_convert(in, out, stats_path, out_format, options, refine, quiet);
-  } catch (const iteas::MemoryLimitExceeded&) {
-    std::fprintf(stderr,
-                 "iteas: %s: the job needs more memory than its limit of %lld MiB (--memory-limit; by default 3/4 of "
-                 "the machine's memory or of its container's limit): lower --max-triangles or --levels "
-                 "(memory_limit)\n",
-                 in.c_str(), static_cast<long long>(memory_limit >> 20));
-    return kExitBadInput;
-  }
+  return under_memory_limit(in, memory_limit, refine ? "lower --max-triangles or --levels" : "",
+                            [&] { return refine_or_convert(in, out, stats_path, out_format, options, refine, quiet); });
 }
 
 // run()'s job once its arguments are checked.
@@ -199,20 +218,34 @@ int refine_or_convert(const std::string& in, const std::string& out, const std::
 }
 
 int inspect(const std::vector<std::string>& args) {
-  if (args.size() != 1) return usage("inspect takes one file");
-  std::vector<uint8_t> bytes;
-  if (!read_file(args[0], &bytes)) {
-    std::fprintf(stderr, "iteas: cannot read %s\n", args[0].c_str());
-    return kExitIo;
+  std::string in;
+  int64_t memory_limit = 0;
+  for (size_t i = 0; i < args.size(); ++i) {
+    std::string error;
+    if (memory_limit_flag(args, i, &memory_limit, &error)) {
+      if (!error.empty()) return usage(error);
+    } else if (in.empty()) {
+      in = args[i];
+    } else {
+      return usage("inspect takes one file");
+    }
   }
-  nlohmann::json j;
-  const iteas::Status s = iteas::inspect(bytes.data(), bytes.size(), args[0], iteas::ReadLimits(), &j);
-  if (!s.ok()) {
-    std::fprintf(stderr, "iteas: %s: %s (%s)\n", args[0].c_str(), s.message.c_str(), s.code.c_str());
-    return exit_for(s);
-  }
-  std::cout << j.dump(2) << "\n";
-  return kExitOk;
+  if (in.empty()) return usage("inspect takes one file");
+  return under_memory_limit(in, memory_limit, "", [&] {
+    std::vector<uint8_t> bytes;
+    if (!read_file(in, &bytes)) {
+      std::fprintf(stderr, "iteas: cannot read %s\n", in.c_str());
+      return kExitIo;
+    }
+    nlohmann::json j;
+    const iteas::Status s = iteas::inspect(bytes.data(), bytes.size(), in, iteas::ReadLimits(), &j);
+    if (!s.ok()) {
+      std::fprintf(stderr, "iteas: %s: %s (%s)\n", in.c_str(), s.message.c_str(), s.code.c_str());
+      return exit_for(s);
+    }
+    std::cout << j.dump(2) << "\n";
+    return kExitOk;
+  });
 }
 
 }  // namespace

@@ -137,6 +137,15 @@ maybe('usage')('a job past --memory-limit stops with a message and no output', (
   assert.match(r.stderr.trim(), /^iteas: .+bunny-npm\.obj: the job needs more memory than its limit of 64 MiB .+ \(memory_limit\)$/);
   assert.equal(r.stderr.trim().split('\n').length, 1, r.stderr);
   assert.ok(!fs.existsSync(out));
+  // inspect and convert hold the input and the decoded mesh under it too.
+  for (const args of [['inspect', input], ['convert', input, out]]) {
+    const small = iteas([...args, '--memory-limit', '200K']);
+    assert.equal(small.code, 3, small.stderr);
+    assert.match(small.stderr.trim(), /^iteas: .+bunny-npm\.obj: the job needs more memory than its limit of 204800 bytes .+\(memory_limit\)$/);
+    assert.ok(!fs.existsSync(out));
+    assert.equal(iteas([...args, '--memory-limit', '5Q']).code, 2);
+  }
+  assert.equal(iteas(['inspect', input, '--memory-limit=64M']).code, 0);
   const ok = iteas(['refine', input, '-o', out, '--mode', 'uniform', '--levels', '2', '--memory-limit=64M', '--stats', '-', '--quiet']);
   assert.equal(ok.code, 0, ok.stderr);
   assert.equal(JSON.parse(ok.stdout).output.triangles, 3674 * 16);
