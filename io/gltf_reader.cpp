@@ -393,6 +393,8 @@ Status read_gltf(const uint8_t* data, size_t size, bool binary, const ReadLimits
       return Status::Error(ErrorKind::kTooLarge, "too_large", "the glTF's JSON and buffer pass the 4 GiB a GLB can hold");
     ok = loader.LoadBinaryFromMemory(&model, &err, &warn, glb.data(), unsigned(glb.size()), "");
   } else {
+    if (jt_text.size() > UINT32_MAX)  // tinygltf takes the length as 32 bits
+      return Status::Error(ErrorKind::kTooLarge, "too_large", "the glTF's JSON passes the 4 GiB its parser can read");
     ok = loader.LoadASCIIFromString(&model, &err, &warn, jt_text.c_str(), unsigned(jt_text.size()), "");
   }
   if (!ok) {
