@@ -1,5 +1,6 @@
 // The iteas command line (SPEC §6): refine, convert, inspect (and serve, once
 // the server exists). Exit codes: 0 ok, 2 bad usage, 3 bad input, 4 I/O.
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -62,12 +63,27 @@ bool read_file(const std::string& path, std::vector<uint8_t>* out) {
   return !f.bad();
 }
 
+// Writes |size| bytes to |path| ("-": stdout). A regular file (or a new one)
+// is written beside it under a temporary name and renamed over it once
+// whole: a failed write (a full disk, a file size limit) leaves the file
+// that was there, never a truncated one, and nothing else behind. Anything
+// else (a device such as /dev/null, a pipe) is written in place.
 bool write_file(const std::string& path, const void* data, size_t size) {
-  if (path == "-") return std::fwrite(data, 1, size, stdout) == size;
-  std::ofstream f(path, std::ios::binary);
-  if (!f) return false;
-  f.write(static_cast<const char*>(data), std::streamsize(size));
-  return bool(f);
+  if (path == "-") return std::fwrite(data, 1, size, stdout) == size && std::fflush(stdout) == 0;
+  struct stat st;
+  const bool exists = ::stat(path.c_str(), &st) == 0;
+  auto write_to = [&](const std::string& target) {
+    std::ofstream f(target, std::ios::binary | std::ios::trunc);
+    if (!f) return false;
+    f.write(static_cast<const char*>(data), std::streamsize(size));
+    f.close();
+    return !f.fail();
+  };
+  if (exists && !S_ISREG(st.st_mode)) return write_to(path);
+  const std::string temp = path + ".iteas-" + std::to_string(::getpid()) + ".tmp";
+  if (write_to(temp) && std::rename(temp.c_str(), path.c_str()) == 0) return true;
+  std::remove(temp.c_str());
+  return false;
 }
 
 std::string extension_of(const std::string& path) {

@@ -5,8 +5,9 @@ import { test } from 'node:test';
 import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import path from 'node:path';
+import { spawnSync } from 'node:child_process';
 import {
-  HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
+  BIN, HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
 } from './check.mjs';
 
 // ITEAS_JS_ONLY=broken runs only the broken-input test (used with the ASan build).
@@ -122,6 +123,34 @@ maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
   assert.equal(iteas(['refine', path.join(tmp, 'does-not-exist.glb'), '-o', path.join(tmp, 'y.glb')]).code, 4);
   for (const bad of ['12Q', '5MB', '-1', ''])
     assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--memory-limit', bad]).code, 2, bad);
+});
+
+// A write that fails half way (here a file size limit of 100 KiB, as a full
+// disk would) leaves the file that was there, and no temporary file; a
+// device is written in place (renaming over /dev/null would replace it).
+maybe('usage')('a failed write keeps the previous output whole', () => {
+  const input = path.join(DATA, 'bunny-npm.obj');
+  const dir = fs.mkdtempSync(path.join(tmp, 'write-'));
+  const out = path.join(dir, 'out.glb');
+  const stats = path.join(dir, 'stats.json');
+  fs.writeFileSync(out, 'the previous output');
+  const limited = (args) => {
+    const r = spawnSync('bash', ['-c', 'ulimit -f 100; trap "" XFSZ; exec "$0" "$@"', BIN, ...args], { encoding: 'utf8' });
+    return { code: r.status, stderr: r.stderr };
+  };
+  const r = limited(['refine', input, '-o', out, '--levels', '2', '--compression', 'none', '--quiet']);
+  assert.equal(r.code, 4, r.stderr);
+  assert.match(r.stderr, /cannot write .*out\.glb/);
+  assert.equal(fs.readFileSync(out, 'utf8'), 'the previous output');
+  assert.deepEqual(fs.readdirSync(dir), ['out.glb']);
+  // An output under the limit (Draco, 53 KB) replaces it, beside the statistics.
+  const ok = limited(['refine', input, '-o', out, '--quiet', '--stats', stats]);
+  assert.equal(ok.code, 0, ok.stderr);
+  assert.equal(fs.readFileSync(out).subarray(0, 4).toString(), 'glTF');
+  assert.deepEqual(fs.readdirSync(dir).sort(), ['out.glb', 'stats.json']);
+  assert.equal(iteas(['refine', input, '-o', '/dev/null', '--output', 'glb', '--quiet']).code, 0);
+  assert.ok(fs.statSync('/dev/null').isCharacterDevice());
+  assert.equal(iteas(['refine', input, '-o', '/dev/full', '--output', 'glb', '--quiet']).code, 4);
 });
 
 // A job past the memory limit stops with one line and exit 3, writing nothing
