@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdlib>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -66,10 +67,17 @@ bool read_file(const std::string& path, std::vector<uint8_t>* out) {
 // Writes |size| bytes to |path| ("-": stdout). A regular file (or a new one)
 // is written beside it under a temporary name and renamed over it once
 // whole: a failed write (a full disk, a file size limit) leaves the file
-// that was there, never a truncated one, and nothing else behind. Anything
-// else (a device such as /dev/null, a pipe) is written in place.
-bool write_file(const std::string& path, const void* data, size_t size) {
-  if (path == "-") return std::fwrite(data, 1, size, stdout) == size && std::fflush(stdout) == 0;
+// that was there, never a truncated one, and nothing else behind. The file
+// keeps its permissions, and a symbolic link its target (the file it points
+// to is replaced). Anything else (a device such as /dev/null, a pipe) is
+// written in place.
+bool write_file(const std::string& given, const void* data, size_t size) {
+  if (given == "-") return std::fwrite(data, 1, size, stdout) == size && std::fflush(stdout) == 0;
+  std::string path = given;
+  if (char* real = ::realpath(given.c_str(), nullptr)) {  // an existing file, through any links
+    path = real;
+    std::free(real);
+  }
   struct stat st;
   const bool exists = ::stat(path.c_str(), &st) == 0;
   auto write_to = [&](const std::string& target) {
@@ -81,7 +89,9 @@ bool write_file(const std::string& path, const void* data, size_t size) {
   };
   if (exists && !S_ISREG(st.st_mode)) return write_to(path);
   const std::string temp = path + ".iteas-" + std::to_string(::getpid()) + ".tmp";
-  if (write_to(temp) && std::rename(temp.c_str(), path.c_str()) == 0) return true;
+  if (write_to(temp) && (!exists || ::chmod(temp.c_str(), st.st_mode & 07777) == 0) &&
+      std::rename(temp.c_str(), path.c_str()) == 0)
+    return true;
   std::remove(temp.c_str());
   return false;
 }

@@ -148,6 +148,15 @@ maybe('usage')('a failed write keeps the previous output whole', () => {
   assert.equal(ok.code, 0, ok.stderr);
   assert.equal(fs.readFileSync(out).subarray(0, 4).toString(), 'glTF');
   assert.deepEqual(fs.readdirSync(dir).sort(), ['out.glb', 'stats.json']);
+  // A link keeps pointing at the file, which is replaced; the file keeps its mode.
+  fs.chmodSync(out, 0o640);
+  fs.symlinkSync(out, path.join(dir, 'link.glb'));
+  const linked = iteas(['refine', input, '-o', path.join(dir, 'link.glb'), '--mode', 'uniform', '--levels', '1', '--quiet']);
+  assert.equal(linked.code, 0, linked.stderr);
+  assert.ok(fs.lstatSync(path.join(dir, 'link.glb')).isSymbolicLink());
+  assert.equal(fs.statSync(out).mode & 0o777, 0o640);
+  assert.equal(fs.statSync(out).size, fs.statSync(path.join(dir, 'link.glb')).size);
+  assert.ok(fs.statSync(out).size < 53000, 'the uniform level-1 output replaced the file');
   assert.equal(iteas(['refine', input, '-o', '/dev/null', '--output', 'glb', '--quiet']).code, 0);
   assert.ok(fs.statSync('/dev/null').isCharacterDevice());
   assert.equal(iteas(['refine', input, '-o', '/dev/full', '--output', 'glb', '--quiet']).code, 4);
