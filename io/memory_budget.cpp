@@ -114,11 +114,14 @@ int64_t process_heap_limit() {
 
 int64_t default_memory_limit() {
   int64_t total = int64_t(sysconf(_SC_PHYS_PAGES)) * int64_t(sysconf(_SC_PAGESIZE));
-  if (FILE* f = std::fopen("/sys/fs/cgroup/memory.max", "r")) {
-    long long v = 0;
-    if (std::fscanf(f, "%lld", &v) == 1 && v > 0 && v < total) total = v;  // "max" reads as no number
-    std::fclose(f);
-  }
+  // The container's limit: cgroup v2, or v1 on older hosts (whose "no
+  // limit" is a number near 2^63, above the machine's memory).
+  for (const char* file : {"/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"})
+    if (FILE* f = std::fopen(file, "r")) {
+      long long v = 0;
+      if (std::fscanf(f, "%lld", &v) == 1 && v > 0 && v < total) total = v;  // "max" reads as no number
+      std::fclose(f);
+    }
   return total / 4 * 3;
 }
 

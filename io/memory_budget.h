@@ -44,7 +44,8 @@ void set_process_heap_limit(int64_t bytes);
 int64_t process_heap_limit();  // 0: none
 
 // Three quarters of the machine's memory, or of its container's limit (cgroup
-// v2 memory.max) when that is lower: what a process of ours may plan on.
+// v2 memory.max, or v1 memory.limit_in_bytes) when that is lower: what a
+// process of ours may plan on.
 int64_t default_memory_limit();
 
 // A size in bytes as the flags give it: digits, optionally followed by K, M or
