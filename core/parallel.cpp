@@ -231,9 +231,11 @@ class Pool {
       Slot* s = slots_.back().get();
       s->loop = &loop_;
       s->index = int(slots_.size());
+      // A thread that cannot start (the system refuses one, or a memory
+      // budget its state): no slot without a worker is left behind.
       try {
         std::thread(&Pool::work, s).detach();
-      } catch (const std::system_error&) {
+      } catch (...) {
         slots_.pop_back();
         return false;
       }
@@ -386,9 +388,12 @@ void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
   for (int t = 1; t < threads; ++t) {
     const int64_t b = t * block, e = std::min(n, b + block);
     if (b >= e) continue;
+    // A thread that cannot start (the system refuses one, or a memory budget
+    // its state) runs its block here: an exception from here would destroy
+    // the threads already started while they still run.
     try {
       own.emplace_back(run, t, b, e);
-    } catch (const std::system_error&) {
+    } catch (...) {
       run(t, b, e);
     }
   }

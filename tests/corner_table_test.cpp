@@ -22,6 +22,7 @@
 #include "core/cpu_features.h"
 #include "core/parallel.h"
 #include "core/refine.h"
+#include "io/memory_budget.h"
 #include "tests/support.h"
 
 namespace iteas {
@@ -943,6 +944,38 @@ TEST(Parallel, EveryIndexOnceWhateverThePartition) {
   int64_t wrong = 0;
   for (auto& x : seen) wrong += x.load() != 1;
   EXPECT_EQ(wrong, 0) << "nested loops";
+}
+
+// A loop that cannot start its threads (here a memory budget too small for
+// a thread's state, as the server's jobs run under one) runs their blocks on
+// the caller; it never throws with threads of its own still running (that
+// would terminate the process: a joinable std::thread destroyed). Inside a
+// loop the pool is busy, so the inner loop starts threads of its own; the
+// budgets swept reach every point of that loop's allocations.
+TEST(Parallel, ThreadsThatCannotStartLeaveTheirBlocksToTheCaller) {
+  int completed = 0, refused = 0;
+  for (int64_t budget = 0; budget <= 4096; budget += 8) {
+    std::vector<std::atomic<int>> seen(64);
+    bool was_refused = false;
+    iteas::parallel_for(2, 2, [&](int64_t b, int64_t) {
+      if (b != 0) return;
+      iteas::MemoryBudget cap(budget);
+      try {
+        iteas::parallel_for(64, 4, [&](int64_t b, int64_t e) {
+          for (int64_t i = b; i < e; ++i) ++seen[i];
+        }, 1);
+      } catch (const iteas::MemoryLimitExceeded&) {
+        was_refused = true;
+      }
+    }, 1);
+    int64_t wrong = 0;
+    for (auto& x : seen) wrong += x.load() != 1;
+    if (was_refused) ++refused;
+    else ++completed;
+    if (!was_refused) EXPECT_EQ(wrong, 0) << "budget " << budget;
+  }
+  EXPECT_GT(refused, 0);
+  EXPECT_GT(completed, 0);
 }
 
 // The pieces of a loop have lengths that differ by one at most, and each
