@@ -1,10 +1,12 @@
 // The iteas command line (SPEC §6): refine, convert, inspect (and serve, once
 // the server exists). Exit codes: 0 ok, 2 bad usage, 3 bad input, 4 I/O.
+#include <signal.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
 #include <chrono>
 #include <cstdlib>
+#include <cstring>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -64,6 +66,17 @@ bool read_file(const std::string& path, std::vector<uint8_t>* out) {
   return !f.bad();
 }
 
+// The temporary file being written (empty when none): SIGINT, SIGTERM or
+// SIGHUP while it is written removes it (only async-signal-safe calls), then
+// ends the process as the signal would have.
+char g_temp[4096];
+volatile sig_atomic_t g_temp_set = 0;
+extern "C" void remove_temp_and_reraise(int sig) {
+  if (g_temp_set) ::unlink(g_temp);
+  ::signal(sig, SIG_DFL);
+  ::raise(sig);
+}
+
 // Writes |size| bytes to |path| ("-": stdout). A regular file (or a new one)
 // is written beside it under a temporary name and renamed over it once
 // whole: a failed write (a full disk, a file size limit) leaves the file
@@ -89,11 +102,15 @@ bool write_file(const std::string& given, const void* data, size_t size) {
   };
   if (exists && !S_ISREG(st.st_mode)) return write_to(path);
   const std::string temp = path + ".iteas-" + std::to_string(::getpid()) + ".tmp";
-  if (write_to(temp) && (!exists || ::chmod(temp.c_str(), st.st_mode & 07777) == 0) &&
-      std::rename(temp.c_str(), path.c_str()) == 0)
-    return true;
-  std::remove(temp.c_str());
-  return false;
+  if (temp.size() < sizeof(g_temp)) {
+    std::memcpy(g_temp, temp.c_str(), temp.size() + 1);
+    g_temp_set = 1;
+  }
+  bool ok = write_to(temp) && (!exists || ::chmod(temp.c_str(), st.st_mode & 07777) == 0) &&
+            std::rename(temp.c_str(), path.c_str()) == 0;
+  if (!ok) std::remove(temp.c_str());
+  g_temp_set = 0;
+  return ok;
 }
 
 std::string extension_of(const std::string& path) {
@@ -278,6 +295,8 @@ int inspect(const std::vector<std::string>& args) {
 
 int main(int argc, char** argv) {
   iteas::keep_freed_memory();
+  for (int sig : {SIGINT, SIGTERM, SIGHUP})
+    if (argc >= 2 && std::string(argv[1]) != "serve") ::signal(sig, remove_temp_and_reraise);
   if (argc < 2) return usage("missing command");
   const std::string cmd = argv[1];
   const std::vector<std::string> args(argv + 2, argv + argc);

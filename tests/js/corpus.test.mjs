@@ -5,7 +5,7 @@ import { test } from 'node:test';
 import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import path from 'node:path';
-import { spawnSync } from 'node:child_process';
+import { spawn, spawnSync } from 'node:child_process';
 import {
   BIN, HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
 } from './check.mjs';
@@ -160,6 +160,32 @@ maybe('usage')('a failed write keeps the previous output whole', () => {
   assert.equal(iteas(['refine', input, '-o', '/dev/null', '--output', 'glb', '--quiet']).code, 0);
   assert.ok(fs.statSync('/dev/null').isCharacterDevice());
   assert.equal(iteas(['refine', input, '-o', '/dev/full', '--output', 'glb', '--quiet']).code, 4);
+});
+
+// SIGTERM while the output is being written (a pipeline's timeout) ends the
+// process as the signal does, and removes the temporary file: nothing is left
+// (a 68 MB uncompressed output, so that the write lasts long enough to be
+// caught; the directory is polled until the temporary file shows).
+maybe('usage')('a signal during the write leaves no temporary file', async () => {
+  const input = path.join(DATA, 'bunny-npm.obj');
+  for (let attempt = 1; ; ++attempt) {
+    const dir = fs.mkdtempSync(path.join(tmp, 'signal-'));
+    const child = spawn(BIN, ['refine', input, '-o', path.join(dir, 'big.glb'), '--mode', 'uniform', '--levels', '5',
+      '--compression', 'none', '--quiet']);
+    const ended = new Promise((resolve) => child.on('exit', (code, signal) => resolve({ code, signal })));
+    let caught = false;
+    for (const t0 = Date.now(); Date.now() - t0 < 60000;) {
+      const names = fs.readdirSync(dir);
+      if (names.some((n) => n.includes('.iteas-'))) { child.kill('SIGTERM'); caught = true; break; }
+      if (names.includes('big.glb')) break;  // written before a look found the temporary file
+    }
+    const { code, signal } = await ended;
+    if (!caught && attempt < 5) continue;
+    assert.ok(caught, 'the temporary file was never seen');
+    assert.equal(signal, 'SIGTERM', `exit code ${code}`);
+    assert.deepEqual(fs.readdirSync(dir), []);
+    return;
+  }
 });
 
 // A job past the memory limit stops with one line and exit 3, writing nothing
