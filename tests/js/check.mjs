@@ -34,7 +34,14 @@ export function nastyMeshes() {
 export const tmp = fs.mkdtempSync(path.join(os.tmpdir(), 'iteas-test-'));
 // Removed when the test process ends (a corpus run leaves about 150 MB there);
 // ITEAS_KEEP_TMP=1 keeps it to look at.
-if (!process.env.ITEAS_KEEP_TMP) process.on('exit', () => fs.rmSync(tmp, { recursive: true, force: true }));
+if (!process.env.ITEAS_KEEP_TMP)
+  process.on('exit', () => {
+    try {
+      fs.rmSync(tmp, { recursive: true, force: true, maxRetries: 3 });
+    } catch {
+      // a server still writing there as the process ends: the directory stays
+    }
+  });
 
 export function iteas(args) {
   const r = spawnSync(BIN, args, { encoding: 'utf8', maxBuffer: 1 << 28 });
