@@ -4,6 +4,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
 #include <cstdlib>
 #include <cstring>
@@ -38,14 +39,30 @@ const char* kUsage =
     "  --tolerance F|off  --flat-limit F|off  (fractions of the bounding-box diagonal)\n"
     "  --max-triangles N  --tension W  --output glb|gltf|drc|obj|ply  --compression draco|none\n"
     "  --position-bits N --normal-bits N --texcoord-bits N --color-bits N --generic-bits N --draco-level 0-10\n"
-    "formats in: glb gltf (data: URIs only) drc obj ply off stl; out: glb gltf drc obj ply\n";
+    "formats in: glb gltf (data: URIs only) drc obj ply off stl; out: glb gltf drc obj ply\n"
+    "IN may be - (stdin); OUT and --stats FILE may be - (stdout; OUT then with --output)\n";
 
 int usage(const std::string& msg) {
   std::fprintf(stderr, "iteas: %s\n%s", msg.c_str(), kUsage);
   return kExitUsage;
 }
 
+// Reads all of |path| ("-": stdin). False, with errno telling why, when it
+// cannot: a directory is refused before it is opened (read as a stream, its
+// size showed as 2^63 bytes).
 bool read_file(const std::string& path, std::vector<uint8_t>* out) {
+  if (path == "-") {
+    out->clear();
+    char buffer[1 << 16];
+    for (size_t n; (n = std::fread(buffer, 1, sizeof(buffer), stdin)) > 0;) out->insert(out->end(), buffer, buffer + n);
+    return !std::ferror(stdin);
+  }
+  struct stat st;
+  if (::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode)) {
+    errno = EISDIR;
+    return false;
+  }
+  errno = 0;
   std::ifstream f(path, std::ios::binary);
   if (!f) return false;
   // One read of the whole file where its size is known (stream iterators
@@ -218,7 +235,7 @@ int refine_or_convert(const std::string& in, const std::string& out, const std::
                       const std::string& out_format, const iteas::Options& options, bool refine, bool quiet) {
   std::vector<uint8_t> bytes;
   if (!read_file(in, &bytes)) {
-    std::fprintf(stderr, "iteas: cannot read %s\n", in.c_str());
+    std::fprintf(stderr, "iteas: cannot read %s%s%s\n", in.c_str(), errno ? ": " : "", errno ? std::strerror(errno) : "");
     return kExitIo;
   }
   iteas::JobRequest rq;
@@ -277,7 +294,7 @@ int inspect(const std::vector<std::string>& args) {
   return under_memory_limit(in, memory_limit, "", [&] {
     std::vector<uint8_t> bytes;
     if (!read_file(in, &bytes)) {
-      std::fprintf(stderr, "iteas: cannot read %s\n", in.c_str());
+      std::fprintf(stderr, "iteas: cannot read %s%s%s\n", in.c_str(), errno ? ": " : "", errno ? std::strerror(errno) : "");
       return kExitIo;
     }
     nlohmann::json j;

@@ -123,6 +123,26 @@ maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
   assert.equal(iteas(['refine', path.join(tmp, 'does-not-exist.glb'), '-o', path.join(tmp, 'y.glb')]).code, 4);
   for (const bad of ['12Q', '5MB', '-1', ''])
     assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--memory-limit', bad]).code, 2, bad);
+  // A directory is refused as unreadable (it read as 2^63 bytes, and then as
+  // a job past the memory limit), with the reason.
+  const dir = iteas(['refine', tmp, '-o', path.join(tmp, 'y.glb')]);
+  assert.equal(dir.code, 4, dir.stderr);
+  assert.match(dir.stderr, /cannot read .+: Is a directory/);
+  assert.match(iteas(['inspect', path.join(tmp, 'does-not-exist.glb')]).stderr, /No such file or directory/);
+});
+
+// "-" reads the input from stdin (the format told by its content).
+maybe('usage')('the input can come from stdin', () => {
+  const input = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  const info = spawnSync(BIN, ['inspect', '-'], { input, encoding: 'utf8' });
+  assert.equal(info.status, 0, info.stderr);
+  assert.equal(JSON.parse(info.stdout).triangles, 3674);
+  const out = path.join(tmp, 'from-stdin.glb');
+  const r = spawnSync(BIN, ['refine', '-', '-o', out, '--mode', 'uniform', '--levels', '1', '--stats', '-', '--quiet'],
+    { input, encoding: 'utf8' });
+  assert.equal(r.status, 0, r.stderr);
+  assert.equal(JSON.parse(r.stdout).output.triangles, 4 * 3674);
+  assert.equal(fs.readFileSync(out).subarray(0, 4).toString(), 'glTF');
 });
 
 // A write that fails half way (here a file size limit of 100 KiB, as a full
