@@ -125,9 +125,45 @@ bool write_file(const std::string& given, const void* data, size_t size) {
   }
   bool ok = write_to(temp) && (!exists || ::chmod(temp.c_str(), st.st_mode & 07777) == 0) &&
             std::rename(temp.c_str(), path.c_str()) == 0;
-  if (!ok) std::remove(temp.c_str());
+  if (!ok) {
+    const int e = errno;  // the write's reason, not the removal's
+    std::remove(temp.c_str());
+    errno = e;
+  }
   g_temp_set = 0;
   return ok;
+}
+
+// Can |path| be written ("-" can)? Asked before the job, so that a wrong
+// path fails at once rather than after the refinement, and leaves the other
+// output untouched. False, with errno telling why: a directory, a missing or
+// read-only directory to write in.
+bool writable(const std::string& path) {
+  if (path == "-") return true;
+  struct stat st;
+  if (::stat(path.c_str(), &st) == 0) {
+    if (S_ISDIR(st.st_mode)) {
+      errno = EISDIR;
+      return false;
+    }
+    if (!S_ISREG(st.st_mode)) return ::access(path.c_str(), W_OK) == 0;  // a device, written in place
+  }
+  // A regular file is written beside itself and renamed: its directory.
+  std::string target = path;
+  if (char* real = ::realpath(path.c_str(), nullptr)) {
+    target = real;
+    std::free(real);
+  }
+  const size_t slash = target.find_last_of('/');
+  const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : target.substr(0, slash);
+  return ::access(dir.c_str(), W_OK) == 0;
+}
+
+// "iteas: cannot read|write PATH: the system's reason".
+int io_error(const char* what, const std::string& path) {
+  const int e = errno;
+  std::fprintf(stderr, "iteas: cannot %s %s%s%s\n", what, path.c_str(), e ? ": " : "", e ? std::strerror(e) : "");
+  return kExitIo;
 }
 
 std::string extension_of(const std::string& path) {
@@ -225,6 +261,8 @@ int run(const std::vector<std::string>& args, bool refine) {
   std::string out_format = options.out.output.empty() ? extension_of(out) : options.out.output;
   if (out_format != "glb" && out_format != "gltf" && out_format != "drc" && out_format != "obj" && out_format != "ply")
     return usage("cannot tell the output format from '" + out + "': use .glb .gltf .drc .obj .ply or --output");
+  for (const std::string& path : {out, stats_path})
+    if (!path.empty() && !writable(path)) return io_error("write", path);
 
   return under_memory_limit(in, memory_limit, refine ? "lower --max-triangles or --levels" : "",
                             [&] { return refine_or_convert(in, out, stats_path, out_format, options, refine, quiet); });
@@ -235,8 +273,7 @@ int refine_or_convert(const std::string& in, const std::string& out, const std::
                       const std::string& out_format, const iteas::Options& options, bool refine, bool quiet) {
   std::vector<uint8_t> bytes;
   if (!read_file(in, &bytes)) {
-    std::fprintf(stderr, "iteas: cannot read %s%s%s\n", in.c_str(), errno ? ": " : "", errno ? std::strerror(errno) : "");
-    return kExitIo;
+    return io_error("read", in);
   }
   iteas::JobRequest rq;
   rq.data = bytes.data();
@@ -262,14 +299,12 @@ int refine_or_convert(const std::string& in, const std::string& out, const std::
     return exit_for(s);
   }
   if (!write_file(out, result.bytes.data(), result.bytes.size())) {
-    std::fprintf(stderr, "iteas: cannot write %s\n", out.c_str());
-    return kExitIo;
+    return io_error("write", out);
   }
   if (!stats_path.empty()) {
     const std::string text = result.stats.dump(2) + "\n";
     if (!write_file(stats_path, text.data(), text.size())) {
-      std::fprintf(stderr, "iteas: cannot write %s\n", stats_path.c_str());
-      return kExitIo;
+      return io_error("write", stats_path);
     }
   }
   for (const auto& w : result.stats["warnings"])
@@ -294,8 +329,7 @@ int inspect(const std::vector<std::string>& args) {
   return under_memory_limit(in, memory_limit, "", [&] {
     std::vector<uint8_t> bytes;
     if (!read_file(in, &bytes)) {
-      std::fprintf(stderr, "iteas: cannot read %s%s%s\n", in.c_str(), errno ? ": " : "", errno ? std::strerror(errno) : "");
-      return kExitIo;
+      return io_error("read", in);
     }
     nlohmann::json j;
     const iteas::Status s = iteas::inspect(bytes.data(), bytes.size(), in, iteas::ReadLimits(), &j);

@@ -160,9 +160,17 @@ maybe('usage')('a failed write keeps the previous output whole', () => {
   };
   const r = limited(['refine', input, '-o', out, '--levels', '2', '--compression', 'none', '--quiet']);
   assert.equal(r.code, 4, r.stderr);
-  assert.match(r.stderr, /cannot write .*out\.glb/);
+  assert.match(r.stderr, /cannot write .*out\.glb: File too large/);
   assert.equal(fs.readFileSync(out, 'utf8'), 'the previous output');
   assert.deepEqual(fs.readdirSync(dir), ['out.glb']);
+  // A path that cannot be written fails before the job, the output untouched.
+  const missing = iteas(['refine', input, '-o', out, '--stats', path.join(dir, 'no', 'stats.json'), '--quiet']);
+  assert.equal(missing.code, 4, missing.stderr);
+  assert.match(missing.stderr, /cannot write .+stats\.json: No such file or directory/);
+  assert.equal(fs.readFileSync(out, 'utf8'), 'the previous output');
+  const isDir = iteas(['refine', input, '-o', dir, '--output', 'glb', '--quiet']);
+  assert.equal(isDir.code, 4, isDir.stderr);
+  assert.match(isDir.stderr, /Is a directory/);
   // An output under the limit (Draco, 53 KB) replaces it, beside the statistics.
   const ok = limited(['refine', input, '-o', out, '--quiet', '--stats', stats]);
   assert.equal(ok.code, 0, ok.stderr);
