@@ -28,6 +28,7 @@ const char* kUsage =
     "  iteas refine IN -o OUT [options] [--stats FILE|-] [--threads N] [--memory-limit B|nK|nM|nG] [--quiet]\n"
     "  iteas convert IN OUT [output options] [--memory-limit B|nK|nM|nG]\n"
     "  iteas inspect IN [--memory-limit B|nK|nM|nG]\n"
+    "  iteas --version\n"
     "  iteas serve [--host H] [--port P] [--workers N] [--queue N] [--max-upload-bytes B]\n"
     "              [--max-output-triangles N] [--request-timeout S] [--job-ttl S] [--result-bytes-cap B]\n"
     "              [--grace S] [--read-timeout S] [--api-key K] [--log-format text|json]\n"
@@ -360,6 +361,10 @@ int main(int argc, char** argv) {
       std::string error;
       if (!iteas::parse_server_flags(args, &config, &error)) return usage(error);
       return iteas::serve(config);
+    }
+    if (cmd == "--version" || cmd == "version") {
+      std::printf("iteas %s\n", ITEAS_VERSION);
+      return kExitOk;
     }
     if (cmd == "--help" || cmd == "-h" || cmd == "help") {
       std::fputs(kUsage, stdout);

@@ -7,7 +7,7 @@ import fs from 'node:fs';
 import path from 'node:path';
 import { spawn, spawnSync } from 'node:child_process';
 import {
-  BIN, HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
+  BIN, SOURCE_DIR, HAVE_CORPUS, DATA, tmp, iteas, inspect, validMeshes, nastyMeshes, validate, checkGltfOutput, maxNearestDistance, concat,
 } from './check.mjs';
 
 // ITEAS_JS_ONLY=broken runs only the broken-input test (used with the ASan build).
@@ -120,6 +120,10 @@ maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
   assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--levels', '9']).code, 2);
   assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--bogus', '1']).code, 2);
   assert.equal(iteas(['frobnicate']).code, 2);
+  const version = iteas(['--version']);
+  assert.equal(version.code, 0);
+  const project = fs.readFileSync(path.join(SOURCE_DIR, 'CMakeLists.txt'), 'utf8').match(/project\(iteas VERSION ([0-9.]+)/)[1];
+  assert.equal(version.stdout, `iteas ${project}\n`);
   assert.equal(iteas(['refine', path.join(tmp, 'does-not-exist.glb'), '-o', path.join(tmp, 'y.glb')]).code, 4);
   for (const bad of ['12Q', '5MB', '-1', ''])
     assert.equal(iteas(['refine', 'x.glb', '-o', 'y.glb', '--memory-limit', bad]).code, 2, bad);
