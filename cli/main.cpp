@@ -84,6 +84,16 @@ bool read_file(const std::string& path, std::vector<uint8_t>* out) {
   return !f.bad();
 }
 
+// An existing file's path through any symbolic links (write_file replaces
+// the file a link points to); |path| itself for anything else.
+std::string resolved(const std::string& path) {
+  char* real = ::realpath(path.c_str(), nullptr);
+  if (!real) return path;
+  std::string out = real;
+  std::free(real);
+  return out;
+}
+
 // The temporary file being written (empty when none): SIGINT, SIGTERM or
 // SIGHUP while it is written removes it (only async-signal-safe calls), then
 // ends the process as the signal would have.
@@ -104,11 +114,7 @@ extern "C" void remove_temp_and_reraise(int sig) {
 // written in place.
 bool write_file(const std::string& given, const void* data, size_t size) {
   if (given == "-") return std::fwrite(data, 1, size, stdout) == size && std::fflush(stdout) == 0;
-  std::string path = given;
-  if (char* real = ::realpath(given.c_str(), nullptr)) {  // an existing file, through any links
-    path = real;
-    std::free(real);
-  }
+  const std::string path = resolved(given);
   struct stat st;
   const bool exists = ::stat(path.c_str(), &st) == 0;
   auto write_to = [&](const std::string& target) {
@@ -150,11 +156,7 @@ bool writable(const std::string& path) {
     if (!S_ISREG(st.st_mode)) return ::access(path.c_str(), W_OK) == 0;  // a device, written in place
   }
   // A regular file is written beside itself and renamed: its directory.
-  std::string target = path;
-  if (char* real = ::realpath(path.c_str(), nullptr)) {
-    target = real;
-    std::free(real);
-  }
+  const std::string target = resolved(path);
   const size_t slash = target.find_last_of('/');
   const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : target.substr(0, slash);
   return ::access(dir.c_str(), W_OK) == 0;

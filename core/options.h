@@ -45,6 +45,7 @@ struct RefineOptions {
 // signed integers, three a triangle. A larger max_triangles is capped to it
 // (as the server caps it to its own limit), and refine_mesh caps it too.
 inline constexpr int64_t kMaxTriangles = 715827882;  // (2^31 - 1) / 3
+static_assert(3 * kMaxTriangles <= INT32_MAX && 3 * (kMaxTriangles + 1) > INT32_MAX, "the most a corner index numbers");
 
 // 2^-1/2: a bend falling at less than half the smooth-surface rate, in octaves
 // (the modified Butterfly halves θ per level on a smooth surface).

@@ -30,6 +30,8 @@ int64_t estimate_job_bytes(const JobRequest& r) {
 Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   auto now = [&] { return hooks.now_ms ? hooks.now_ms() : 0.0; };
   const double t0 = now();
+  // Threads for the work around the core's loops (JobRequest::outer_threads).
+  const int outer = rq.outer_threads > 0 ? rq.outer_threads : rq.options.refine.threads;
   const std::string format = sniff_format(rq.data, rq.size, rq.name_hint);
   if (format.empty())
     return Status::Error(ErrorKind::kUnsupported, "unsupported_format",
@@ -52,7 +54,6 @@ Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
     // Several meshes, none of them most of the work: refined at once, one
     // thread each; otherwise one after another on all the job's threads.
     // (A mesh's result is the same on any number of threads.)
-    const int outer = rq.outer_threads > 0 ? rq.outer_threads : rq.options.refine.threads;
     const int threads = resolve_threads(outer);
     const bool at_once = threads > 1 && doc.meshes.size() > 1 && 2 * largest <= total_in;
     std::mutex progress_mutex;
@@ -107,7 +108,7 @@ Status run_job(const JobRequest& rq, const JobHooks& hooks, JobResult* result) {
   const std::string out_format = rq.output_format.empty() ? "glb" : rq.output_format;
   auto make_stats = [&](const WriteCounts& c) { return stats_json(doc, per_mesh, rq.options, out_format, c, rq.refine); };
   OutputOptions out = rq.options.out;
-  out.threads = rq.outer_threads > 0 ? rq.outer_threads : rq.options.refine.threads;
+  out.threads = outer;
   s = write_document(doc, out, out_format, make_stats, &result->bytes, &counts);
   if (!s.ok()) return s;
   const double t_encoded = now();
