@@ -349,6 +349,10 @@ int inspect(const std::vector<std::string>& args) {
 
 int main(int argc, char** argv) {
   iteas::keep_freed_memory();
+  // Past a file size limit (ulimit -f) a write fails with EFBIG and is
+  // reported, instead of the default SIGXFSZ ending the process (a CLI run
+  // left its temporary file behind; a server lost every job it held).
+  ::signal(SIGXFSZ, SIG_IGN);
   for (int sig : {SIGINT, SIGTERM, SIGHUP})
     if (argc >= 2 && std::string(argv[1]) != "serve") ::signal(sig, remove_temp_and_reraise);
   if (argc < 2) return usage("missing command");

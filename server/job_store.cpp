@@ -1,6 +1,9 @@
 #include "server/job_store.h"
 
+#include <fcntl.h>
 #include <unistd.h>
+
+#include <cerrno>
 
 #include <algorithm>
 #include <cstdlib>
@@ -8,6 +11,7 @@
 #include <fstream>
 #include <random>
 #include <sstream>
+#include <system_error>
 #include <thread>
 
 namespace iteas {
@@ -15,19 +19,28 @@ namespace fs = std::filesystem;
 
 namespace {
 
-bool write_atomically(const std::string& target, const char* data, size_t size) {
+// Writes |size| bytes to |target| through a temporary name beside it; ""
+// when whole, else what failed and the system's reason (a full volume, a file
+// size limit, a volume gone read-only). A failed write leaves no temporary.
+std::string write_atomically(const std::string& target, const char* data, size_t size) {
   static thread_local std::mt19937_64 rng{std::random_device{}()};
   const std::string tmp = target + ".tmp" + std::to_string(rng());
-  {
-    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
-    if (!f) return false;
-    f.write(data, std::streamsize(size));
-    if (!f.flush()) { std::error_code ec; fs::remove(tmp, ec); return false; }
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return "cannot create " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
+  std::string error;
+  for (size_t done = 0; done < size && error.empty();) {
+    const ssize_t n = ::write(fd, data + done, size - done);
+    if (n > 0) done += size_t(n);
+    else if (n < 0 && errno == EINTR) continue;
+    else error = "cannot write " + tmp + ": " + std::error_code(n < 0 ? errno : EIO, std::generic_category()).message();
   }
-  std::error_code ec;
-  fs::rename(tmp, target, ec);
-  if (ec) fs::remove(tmp, ec);
-  return !ec;
+  // A network volume may report the failure only here.
+  if (::close(fd) != 0 && error.empty())
+    error = "cannot write " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
+  if (error.empty() && ::rename(tmp.c_str(), target.c_str()) != 0)
+    error = "cannot rename " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
+  if (!error.empty()) ::unlink(tmp.c_str());
+  return error;
 }
 
 bool read_all(const std::string& file, std::string* out) {
@@ -55,14 +68,19 @@ bool JobStore::usable(std::string* error) const {
   return true;
 }
 
-void JobStore::put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result) const {
-  if (!enabled()) return;
+std::string JobStore::put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result) const {
+  if (!enabled()) return "";
   if (delay_ms_ > 0) std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms_));
-  // The result first: a status that says "done" always finds its bytes.
-  if (result) write_atomically(path(id, ".result"), reinterpret_cast<const char*>(result->data()), result->size());
-  const std::string text =
-      nlohmann::json{{"status", job.status}, {"http_status", job.http_status}, {"content_type", job.content_type}}.dump();
-  write_atomically(path(id, ".json"), text.data(), text.size());
+  // The result first: a status that says "done" always finds its bytes, or
+  // says why the store could not take them.
+  std::string error;
+  if (result) error = write_atomically(path(id, ".result"), reinterpret_cast<const char*>(result->data()), result->size());
+  nlohmann::json record{{"status", job.status}, {"http_status", job.http_status}, {"content_type", job.content_type}};
+  if (!error.empty()) record["result_error"] = error;
+  const std::string text = record.dump();
+  const std::string status_error = write_atomically(path(id, ".json"), text.data(), text.size());
+  if (error.empty()) return status_error;
+  return status_error.empty() ? error : error + "; " + status_error;
 }
 
 std::optional<StoredJob> JobStore::get(const std::string& id) const {
@@ -75,6 +93,7 @@ std::optional<StoredJob> JobStore::get(const std::string& id) const {
   s.status = j["status"];
   s.http_status = j.value("http_status", 200);
   s.content_type = j.value("content_type", std::string("application/octet-stream"));
+  s.result_error = j.value("result_error", std::string());
   return s;
 }
 

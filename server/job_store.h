@@ -20,6 +20,9 @@ struct StoredJob {
   nlohmann::json status;     // the body of GET /v1/jobs/{id}
   int http_status = 200;     // for a failed job: the status of its error
   std::string content_type;  // of the result
+  // Why the store has no result for a job that is done (the replica that ran
+  // it could not write it: a full volume, say); empty when it has it.
+  std::string result_error;
 };
 
 class JobStore {
@@ -28,7 +31,11 @@ class JobStore {
   bool enabled() const { return !dir_.empty(); }
   bool usable(std::string* error) const;  // the directory exists and is writable
 
-  void put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result = nullptr) const;
+  // Writes the job's status, and its result when given (before the status).
+  // Returns "" when all was written, else what failed and the system's
+  // reason; a result that could not be written is recorded as such in the
+  // status (StoredJob::result_error).
+  std::string put(const std::string& id, const StoredJob& job, const std::vector<uint8_t>* result = nullptr) const;
   std::optional<StoredJob> get(const std::string& id) const;
   bool result(const std::string& id, std::string* bytes) const;
   bool remove(const std::string& id) const;

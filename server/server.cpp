@@ -49,6 +49,7 @@ class Metrics {
     ++h[i];
     sums_[route] += seconds;
   }
+  void store_error() { ++store_errors_; }
   void triangles(int64_t in, int64_t out) {
     tri_in_ += in;
     tri_out_ += out;
@@ -90,6 +91,9 @@ class Metrics {
          "iteas_triangles_in_total " + std::to_string(tri_in_.load()) + "\n";
     s += "# HELP iteas_triangles_out_total Output triangles of finished jobs.\n# TYPE iteas_triangles_out_total counter\n"
          "iteas_triangles_out_total " + std::to_string(tri_out_.load()) + "\n";
+    s += "# HELP iteas_job_store_errors_total Job statuses or results the job store could not take.\n"
+         "# TYPE iteas_job_store_errors_total counter\n"
+         "iteas_job_store_errors_total " + std::to_string(store_errors_.load()) + "\n";
     return s;
   }
 
@@ -103,7 +107,7 @@ class Metrics {
   std::map<std::pair<std::string, int>, int64_t> requests_;
   std::map<std::string, std::vector<int64_t>> hist_;
   std::map<std::string, double> sums_;
-  std::atomic<int64_t> tri_in_{0}, tri_out_{0};
+  std::atomic<int64_t> tri_in_{0}, tri_out_{0}, store_errors_{0};
 };
 
 // --- helpers -------------------------------------------------------------------
@@ -257,15 +261,22 @@ int serve(const ServerConfig& cfg) {
     std::string error;
     if (!store.usable(&error)) { logger->error("{}", error); return 2; }
   }
+  Metrics metrics;
   queue.set_observer([&](Job& job) {  // job.mu held (JobQueue::set_observer)
     StoredJob s;
     s.status = job.status_json_locked();
     s.content_type = content_type_for(job.request.output_format);
     if (job.state == JobState::kFailed) s.http_status = status_for(job.error);
-    store.put(job.id, s, job.state == JobState::kDone ? &job.result : nullptr);
+    // A store that cannot take a write (a full volume, a file size limit)
+    // costs the other replicas this job, never this one: it still answers
+    // from memory, and the others say why they cannot (503).
+    const std::string error = store.put(job.id, s, job.state == JobState::kDone ? &job.result : nullptr);
+    if (!error.empty()) {
+      metrics.store_error();
+      logger->error("job {}: the job store could not take it: {}", job.id, error);
+    }
   });
   std::atomic<int64_t> last_expiry{0};
-  Metrics metrics;
   std::atomic<bool> draining{false};
 
   httplib::Server svr;
@@ -445,9 +456,16 @@ int serve(const ServerConfig& cfg) {
         const json err = stored->status.value("error", json::object());
         throw HttpError{stored->http_status, err.value("code", std::string("failed")), err.value("message", std::string("the job failed"))};
       }
+      if (state != "done") throw HttpError{409, "not_ready", "the job is " + state};
+      if (!stored->result_error.empty()) {
+        res.set_header("Retry-After", "1");
+        throw HttpError{503, "result_unavailable",
+                        "the replica that ran this job holds its result, but the job store could not take it (" +
+                            stored->result_error + ")"};
+      }
       std::string bytes;
-      if (state != "done" || !store.result(req.matches[1], &bytes))
-        throw HttpError{409, "not_ready", "the job is " + state};
+      if (!store.result(req.matches[1], &bytes))
+        throw HttpError{404, "job_not_found", "the job's result has expired or was deleted"};
       if (stored->status.contains("statistics")) res.set_header("X-IteAS-Stats", stored->status["statistics"].dump());
       res.set_content(std::move(bytes), stored->content_type);
       return;

@@ -203,8 +203,13 @@ export function killLeftoverServers() {
   live.clear();
 }
 
-export async function startServer(flags = [], env = {}) {
-  const proc = spawn(BIN, ['serve', '--port', '0', ...flags], { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
+// |fileSizeKiB|: the server runs under that file size limit (ulimit -f), with
+// SIGXFSZ as a shell gives it (Node ignores it, which its children inherit).
+export async function startServer(flags = [], env = {}, { fileSizeKiB } = {}) {
+  const args = ['serve', '--port', '0', ...flags];
+  const [cmd, argv] = fileSizeKiB === undefined ? [BIN, args]
+    : ['env', ['--default-signal=XFSZ', 'bash', '-c', `ulimit -f ${fileSizeKiB}; exec "$0" "$@"`, BIN, ...args]];
+  const proc = spawn(cmd, argv, { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
   live.add(proc);
   proc.on('exit', () => live.delete(proc));
   let out = '';

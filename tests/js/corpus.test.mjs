@@ -159,7 +159,9 @@ maybe('usage')('a failed write keeps the previous output whole', () => {
   const stats = path.join(dir, 'stats.json');
   fs.writeFileSync(out, 'the previous output');
   const limited = (args) => {
-    const r = spawnSync('bash', ['-c', 'ulimit -f 100; trap "" XFSZ; exec "$0" "$@"', BIN, ...args], { encoding: 'utf8' });
+    // SIGXFSZ as a shell gives it (Node ignores it, and its children would inherit that).
+    const r = spawnSync('env', ['--default-signal=XFSZ', 'bash', '-c', 'ulimit -f 100; exec "$0" "$@"', BIN, ...args],
+      { encoding: 'utf8' });
     return { code: r.status, stderr: r.stderr };
   };
   const r = limited(['refine', input, '-o', out, '--levels', '2', '--compression', 'none', '--quiet']);

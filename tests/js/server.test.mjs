@@ -298,6 +298,53 @@ maybe('replicas')('replicas sharing a job store: a job one reports done has its 
   }
 });
 
+maybe('replicas')('a job store that cannot take a result: the replica that ran the job answers, the others say why', async () => {
+  // Replica A writes under a 200 KiB file size limit (as a full volume
+  // would refuse): an uncompressed level-2 result (about 1 MB) cannot be
+  // stored, a Draco level-1 one (about 30 KB) can.
+  const dir = fs.mkdtempSync(path.join(tmp, 'jobs-full-'));
+  const a = await startServer(['--workers', '1', '--job-dir', dir], {}, { fileSizeKiB: 200 });
+  const b = await startServer(['--workers', '1', '--job-dir', dir]);
+  const mesh = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  const run = async (query) => {
+    const sub = await fetch(`${a.url}/v1/jobs?${query}`,
+      { method: 'POST', body: mesh, headers: { 'Content-Type': 'application/octet-stream' } });
+    assert.equal(sub.status, 202);
+    const loc = sub.headers.get('location');
+    let state = 'queued';
+    for (let k = 0; k < 6000 && ['queued', 'running'].includes(state); k++) {
+      await sleep(20);
+      state = (await (await fetch(a.url + loc)).json()).status;
+    }
+    assert.equal(state, 'done');
+    return loc;
+  };
+  try {
+    const big = await run('mode=uniform&levels=2&compression=none');
+    const own = await fetch(`${a.url}${big}/result`);
+    assert.equal(own.status, 200);
+    assert.ok((await own.arrayBuffer()).byteLength > 200 * 1024);
+    assert.equal((await (await fetch(b.url + big)).json()).status, 'done');
+    const other = await fetch(`${b.url}${big}/result`);
+    const body = await expectError(other, 503, 'result_unavailable');
+    assert.match(body.error.message, /File too large/);
+    assert.equal(other.headers.get('retry-after'), '1');
+    assert.match(await (await fetch(`${a.url}/metrics`)).text(), /^iteas_job_store_errors_total 1$/m);
+    assert.match(a.log(), /job store could not take it: cannot write .*File too large/);
+    assert.deepEqual(fs.readdirSync(dir).filter((f) => f.includes('.tmp')), []);
+    const small = await run('mode=uniform&levels=1');
+    const stored = await fetch(`${b.url}${small}/result`);
+    assert.equal(stored.status, 200, await stored.clone().text());
+    assert.equal(Buffer.from(await stored.arrayBuffer()).subarray(0, 4).toString(), 'glTF');
+    // Deleted through A: the other replica no longer finds it.
+    assert.equal((await fetch(a.url + small, { method: 'DELETE' })).status, 200);
+    await expectError(await fetch(`${b.url}${small}/result`), 404, 'job_not_found');
+  } finally {
+    assert.equal(await stopServer(a), 0);
+    await stopServer(b);
+  }
+});
+
 maybe('openapi')('the OpenAPI document passes a standard linter and is served', async () => {
   const lint = spawnSync(path.join(path.dirname(new URL(import.meta.url).pathname), 'node_modules/.bin/redocly'),
     ['lint', '--config', path.join(SOURCE_DIR, 'proto/redocly.yaml'), path.join(SOURCE_DIR, 'proto/openapi.yaml')], { encoding: 'utf8' });
