@@ -164,6 +164,17 @@ bool constant_time_equal(const std::string& a, const std::string& b) {
 
 thread_local Clock::time_point t_request_start;
 thread_local std::string t_request_id;
+thread_local int64_t t_bytes_in = -1;  // a body read by read_upload (-1: req.body)
+// An upload was left unread after its answer: httplib 0.11 reads what follows
+// on the connection as requests (none parses; each gets a 400) until the
+// client, told "Connection: close", goes. Those are not logged or counted.
+thread_local bool t_closing = false;
+
+// Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
+// which some clients (Node 18's fetch) leave out.
+constexpr const char* kBadMultipart =
+    "the multipart body could not be read (boundaries malformed, or the closing one not ended by CRLF); "
+    "send the mesh as the raw request body instead";
 
 }  // namespace
 
@@ -295,6 +306,8 @@ int serve(const ServerConfig& cfg) {
 
   svr.set_pre_routing_handler([&](const httplib::Request& req, httplib::Response& res) {
     t_request_start = Clock::now();
+    t_bytes_in = -1;
+    t_closing = false;
     t_request_id = req.has_header("X-Request-Id") ? req.get_header_value("X-Request-Id").substr(0, 64) : new_id();
     res.set_header("X-Request-Id", t_request_id);
     // Nothing is answered here: this runs before httplib reads the body, and an
@@ -303,14 +316,16 @@ int serve(const ServerConfig& cfg) {
     return httplib::Server::HandlerResponse::Unhandled;
   });
   svr.set_logger([&](const httplib::Request& req, const httplib::Response& res) {
+    if (t_closing && req.method.empty()) return;  // the rest of an unread upload
     const double secs = std::chrono::duration<double>(Clock::now() - t_request_start).count();
+    const int64_t bytes_in = t_bytes_in >= 0 ? t_bytes_in : int64_t(req.body.size());
     metrics.observe(route_of(req.path), res.status, secs);
     if (json_log)
       logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{:.3f},"remote":"{}")",
-                   t_request_id, req.method, route_of(req.path), res.status, req.body.size(), res.body.size(), secs * 1000,
+                   t_request_id, req.method, route_of(req.path), res.status, bytes_in, res.body.size(), secs * 1000,
                    req.remote_addr);
     else
-      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, req.path, res.status, req.body.size(),
+      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, req.path, res.status, bytes_in,
                    res.body.size(), secs * 1000, req.remote_addr);
   });
   svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
@@ -325,16 +340,90 @@ int serve(const ServerConfig& cfg) {
     else if (res.status == 413) send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
     else if (res.status == 405) send_error(res, 405, "method_not_allowed", "method not allowed on " + req.path);
     else if (res.status == 400 && req.is_multipart_form_data())
-      // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
-      // which some clients (Node 18's fetch) leave out.
-      send_error(res, 400, "bad_multipart",
-                 "the multipart body could not be read (boundaries malformed, or the closing one not ended by CRLF); "
-                 "send the mesh as the raw request body instead");
+      send_error(res, 400, "bad_multipart", kBadMultipart);
     else send_error(res, res.status, "bad_request", "the request could not be read");
   });
 
+  // Reads a POST's body through |reader|: the raw body, or a multipart
+  // body's "mesh" part. At most --max-upload-bytes are kept, counted after
+  // any Content-Encoding is undone: Debian's cpp-httplib 0.11 applies its
+  // payload limit only to a declared Content-Length, and a chunked body, one
+  // without a length, or a gzip one (a 2.1 MB upload of zeros took 1 GB)
+  // were read whole before. Past the limit up to 16 MiB more are read and
+  // dropped, so that a client sending a little too much gets its 413 on a
+  // clean connection; the rest is not read, and the 413 says
+  // "Connection: close".
+  struct Upload {
+    std::vector<uint8_t> bytes;
+    std::string filename;
+    bool has_mesh = false;  // multipart: a "mesh" part came
+  };
+  auto read_upload = [&](const httplib::Request& req, httplib::Response& res,
+                         const httplib::ContentReader& reader) -> Upload {
+    Upload up;
+    const size_t limit = size_t(cfg.max_upload_bytes);
+    const bool declared = req.has_header("Content-Length") && !req.has_header("Transfer-Encoding");
+    bool over = false, in_mesh = false;
+    size_t seen = 0;  // every part's bytes, for the limit
+    constexpr size_t kDrainBytes = size_t(16) << 20;
+    auto keep = [&](const char* data, size_t n) {
+      seen += n;
+      if (seen > limit) {
+        if (!over) up.bytes = {};
+        over = true;
+        return seen - limit <= kDrainBytes;
+      }
+      if (!in_mesh) return true;
+      // Grown by doubling, but never past the limit (a 256 MiB body took
+      // 512 MiB of capacity).
+      if (up.bytes.size() + n > up.bytes.capacity())
+        up.bytes.reserve(std::min(limit, std::max({2 * up.bytes.capacity(), up.bytes.size() + n, size_t(64) << 10})));
+      up.bytes.insert(up.bytes.end(), data, data + n);
+      return true;
+    };
+    // A declared length is the body's size unless it is encoded.
+    if (declared && !req.has_header("Content-Encoding") && !req.is_multipart_form_data()) {
+      const uint64_t length = std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+      if (length <= limit) up.bytes.reserve(size_t(length));
+    }
+    bool ok;
+    if (req.is_multipart_form_data()) {
+      ok = reader(
+          [&](const httplib::MultipartFormData& part) {
+            in_mesh = part.name == "mesh" && !up.has_mesh;
+            if (in_mesh) {
+              up.has_mesh = true;
+              up.filename = part.filename;
+            }
+            return true;
+          },
+          keep);
+    } else {
+      in_mesh = true;
+      ok = reader(keep);
+    }
+    t_bytes_in = int64_t(seen);
+    // A declared length over the limit: httplib reads the body, drops it and
+    // sets 413.
+    const bool skipped = !ok && !over && declared && res.status == 413;
+    if (over || skipped) {
+      if (!ok && !skipped) {  // some of it left unread
+        res.set_header("Connection", "close");
+        t_closing = true;
+      }
+      throw HttpError{413, "payload_too_large", "the body is over the server's upload limit"};
+    }
+    if (!ok) {
+      res.set_header("Connection", "close");
+      t_closing = true;
+      if (req.is_multipart_form_data())
+        throw HttpError{400, "bad_multipart", kBadMultipart};
+      throw HttpError{400, "bad_body", "the request body could not be read (malformed chunked or compressed data)"};
+    }
+    return up;
+  };
   // Builds a job from a request: options, body (raw or multipart "mesh").
-  auto make_job = [&](const httplib::Request& req, bool listed) -> std::shared_ptr<Job> {
+  auto make_job = [&](const httplib::Request& req, Upload&& up, bool listed) -> std::shared_ptr<Job> {
     if (draining) throw HttpError{503, "draining", "the server is shutting down"};
     std::vector<std::pair<std::string, std::string>> pairs;
     for (const auto& [k, v] : req.params) pairs.emplace_back(k, v);
@@ -349,10 +438,9 @@ int serve(const ServerConfig& cfg) {
     std::string name;
     const std::string type = req.get_header_value("Content-Type");
     if (req.is_multipart_form_data()) {
-      if (!req.has_file("mesh")) throw HttpError{400, "missing_mesh", "multipart upload needs a 'mesh' file part"};
-      const httplib::MultipartFormData f = req.get_file_value("mesh");
-      job->input.assign(f.content.begin(), f.content.end());
-      name = f.filename;
+      if (!up.has_mesh) throw HttpError{400, "missing_mesh", "multipart upload needs a 'mesh' file part"};
+      job->input = std::move(up.bytes);
+      name = up.filename;
     } else {
       const std::string base = type.substr(0, type.find(';'));
       static const char* accepted[] = {"model/gltf-binary", "model/gltf+json", "application/octet-stream", "application/json",
@@ -360,7 +448,7 @@ int serve(const ServerConfig& cfg) {
       bool ok = false;
       for (const char* a : accepted) ok = ok || base == a;
       if (!ok) throw HttpError{415, "unsupported_media_type", "Content-Type '" + base + "' is not a mesh type"};
-      job->input.assign(req.body.begin(), req.body.end());
+      job->input = std::move(up.bytes);
     }
     if (job->input.empty()) throw HttpError{400, "empty_body", "the request has no mesh"};
     job->request.data = job->input.data();
@@ -396,24 +484,33 @@ int serve(const ServerConfig& cfg) {
     }
   };
   // One wrapper for every handler: HttpError and anything else to the envelope.
-  auto wrap = [&](auto handler) {
-    return [&, handler](const httplib::Request& req, httplib::Response& res) {
-      try {
-        if (!cfg.api_key.empty() && !constant_time_equal(req.get_header_value("Authorization"), "Bearer " + cfg.api_key)) {
-          res.set_header("WWW-Authenticate", "Bearer");
-          throw HttpError{401, "unauthorized", "a valid 'Authorization: Bearer <key>' header is required"};
-        }
-        handler(req, res);
-      } catch (const HttpError& e) {
-        send_error(res, e.status, e.code, e.message);
-      } catch (const std::bad_alloc&) {
-        send_error(res, 413, "too_large", "the request needs more memory than the server has");
+  // The API key is checked first: an upload without it is not read.
+  auto guard = [&](const httplib::Request& req, httplib::Response& res, const std::function<void()>& handler) {
+    try {
+      if (!cfg.api_key.empty() && !constant_time_equal(req.get_header_value("Authorization"), "Bearer " + cfg.api_key)) {
+        res.set_header("WWW-Authenticate", "Bearer");
+        throw HttpError{401, "unauthorized", "a valid 'Authorization: Bearer <key>' header is required"};
       }
+      handler();
+    } catch (const HttpError& e) {
+      send_error(res, e.status, e.code, e.message);
+    } catch (const std::bad_alloc&) {
+      send_error(res, 413, "too_large", "the request needs more memory than the server has");
+    }
+  };
+  auto wrap = [&](auto handler) {
+    return [&, handler](const httplib::Request& req, httplib::Response& res) { guard(req, res, [&] { handler(req, res); }); };
+  };
+  // For a POST whose body the handler reads itself (read_upload).
+  auto wrap_upload = [&](auto handler) {
+    return [&, handler](const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+      guard(req, res, [&] { handler(req, res, reader); });
     };
   };
 
-  svr.Post("/v1/refine", wrap([&](const httplib::Request& req, httplib::Response& res) {
-    auto job = make_job(req, false);
+  svr.Post("/v1/refine", wrap_upload([&](const httplib::Request& req, httplib::Response& res,
+                                         const httplib::ContentReader& reader) {
+    auto job = make_job(req, read_upload(req, res, reader), false);
     submit(job, res);
     std::unique_lock<std::mutex> lock(job->mu);
     if (!job->changed.wait_for(lock, std::chrono::seconds(cfg.request_timeout_s), [&] { return job->finished_state(); })) {
@@ -428,8 +525,9 @@ int serve(const ServerConfig& cfg) {
     res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
                     content_type_for(job->request.output_format));
   }));
-  svr.Post("/v1/jobs", wrap([&](const httplib::Request& req, httplib::Response& res) {
-    auto job = make_job(req, true);
+  svr.Post("/v1/jobs", wrap_upload([&](const httplib::Request& req, httplib::Response& res,
+                                       const httplib::ContentReader& reader) {
+    auto job = make_job(req, read_upload(req, res, reader), true);
     submit(job, res);
     res.status = 202;
     res.set_header("Location", "/v1/jobs/" + job->id);
