@@ -172,6 +172,11 @@ thread_local bool t_closing = false;
 
 // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
 // which some clients (Node 18's fetch) leave out.
+// Past the upload limit, or for an upload refused before it was read, up to
+// this many more bytes are read and dropped, so that the client gets its
+// answer on a connection it can keep using; past them it is closed.
+constexpr size_t kDrainBytes = size_t(16) << 20;
+
 constexpr const char* kBadMultipart =
     "the multipart body could not be read (boundaries malformed, or the closing one not ended by CRLF); "
     "send the mesh as the raw request body instead";
@@ -365,7 +370,6 @@ int serve(const ServerConfig& cfg) {
     const bool declared = req.has_header("Content-Length") && !req.has_header("Transfer-Encoding");
     bool over = false, in_mesh = false;
     size_t seen = 0;  // every part's bytes, for the limit
-    constexpr size_t kDrainBytes = size_t(16) << 20;
     auto keep = [&](const char* data, size_t n) {
       seen += n;
       if (seen > limit) {
@@ -501,10 +505,29 @@ int serve(const ServerConfig& cfg) {
   auto wrap = [&](auto handler) {
     return [&, handler](const httplib::Request& req, httplib::Response& res) { guard(req, res, [&] { handler(req, res); }); };
   };
-  // For a POST whose body the handler reads itself (read_upload).
+  // For a POST whose body the handler reads itself (read_upload). A body
+  // the handler did not read (a missing API key) is read and dropped after
+  // it answered, up to the limit and kDrainBytes more; past that, or when it
+  // cannot be read, the connection is closed.
   auto wrap_upload = [&](auto handler) {
     return [&, handler](const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
       guard(req, res, [&] { handler(req, res, reader); });
+      if (t_bytes_in >= 0) return;
+      size_t seen = 0;
+      auto drop = [&](const char*, size_t n) {
+        seen += n;
+        return seen <= size_t(cfg.max_upload_bytes) + kDrainBytes;
+      };
+      const int status = res.status;  // httplib sets 413 for a declared length over the limit
+      const bool ok = req.is_multipart_form_data()
+                          ? reader([](const httplib::MultipartFormData&) { return true; }, drop)
+                          : reader(drop);
+      res.status = status;
+      t_bytes_in = int64_t(seen);
+      if (!ok) {
+        res.set_header("Connection", "close");
+        t_closing = true;
+      }
     };
   };
 
