@@ -8,9 +8,13 @@
 #include <spdlog/sinks/stdout_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <chrono>
+#include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <map>
 #include <random>
 #include <thread>
@@ -144,6 +148,34 @@ std::string route_of(const std::string& path) {
   static const char* known[] = {"/v1/refine", "/v1/jobs", "/healthz", "/readyz", "/metrics", "/v1/openapi.yaml"};
   for (const char* k : known) if (path == k) return k;
   return "other";
+}
+
+// A client's X-Request-Id is kept when it is 1-64 characters of
+// [A-Za-z0-9._:-] (UUIDs, trace ids); anything else gets a new id. It is
+// written into the log: a quote in it forged fields of a JSON log line.
+bool usable_request_id(const std::string& id) {
+  if (id.empty() || id.size() > 64) return false;
+  return std::all_of(id.begin(), id.end(), [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '_' || c == ':' || c == '-';
+  });
+}
+
+// The request's path as the text log writes it: httplib decodes it, so a
+// %0A in the URL put a line of the client's own into the log; control
+// characters, spaces and backslashes are percent-encoded again.
+std::string loggable_path(const std::string& path) {
+  std::string out;
+  out.reserve(path.size());
+  for (unsigned char c : path) {
+    if (c <= 0x20 || c == 0x7f || c == '%' || c == '\\') {
+      char b[4];
+      std::snprintf(b, sizeof b, "%%%02X", c);
+      out += b;
+    } else {
+      out += char(c);
+    }
+  }
+  return out;
 }
 
 std::string new_id() {
@@ -313,7 +345,8 @@ int serve(const ServerConfig& cfg) {
     t_request_start = Clock::now();
     t_bytes_in = -1;
     t_closing = false;
-    t_request_id = req.has_header("X-Request-Id") ? req.get_header_value("X-Request-Id").substr(0, 64) : new_id();
+    const std::string given = req.get_header_value("X-Request-Id");
+    t_request_id = usable_request_id(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
     // Nothing is answered here: this runs before httplib reads the body, and an
     // early answer would leave the body on a keep-alive connection, where it
@@ -330,7 +363,7 @@ int serve(const ServerConfig& cfg) {
                    t_request_id, req.method, route_of(req.path), res.status, bytes_in, res.body.size(), secs * 1000,
                    req.remote_addr);
     else
-      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, req.path, res.status, bytes_in,
+      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, loggable_path(req.path), res.status, bytes_in,
                    res.body.size(), secs * 1000, req.remote_addr);
   });
   svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {

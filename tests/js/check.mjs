@@ -218,8 +218,8 @@ export async function startServer(flags = [], env = {}, { fileSizeKiB } = {}) {
   const port = await new Promise((resolve, reject) => {
     const timer = setTimeout(() => reject(new Error('server did not start: ' + out)), 10000);
     proc.stdout.on('data', () => {
-      const m = out.match(/listening on [^:]+:(\d+)/);
-      if (m) { clearTimeout(timer); resolve(Number(m[1])); }
+      const m = out.match(/listening on [^:]+:(\d+)|"event":"listening".*?"port":(\d+)/);  // text or JSON log
+      if (m) { clearTimeout(timer); resolve(Number(m[1] ?? m[2])); }
     });
     proc.on('exit', (code) => { clearTimeout(timer); reject(new Error(`server exited ${code}: ${out}`)); });
   });

@@ -227,6 +227,29 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
   assert.match(metrics, /iteas_queue_depth \d+/);
 });
 
+maybe('auth')('what a client sends cannot forge access-log lines or fields', async () => {
+  // A decoded %0A in the path wrote a line of the client's own into the text
+  // log; a quote in X-Request-Id wrote fields into a JSON log line.
+  for (const format of ['text', 'json']) {
+    const s = await startServer(['--workers', '1', '--log-format', format]);
+    try {
+      await (await fetch(`${s.url}/v1/jobs/abc%0A2026-11-27%2000:00:00.000%20info%20FORGED%0A`)).arrayBuffer();
+      const forged = await fetch(`${s.url}/healthz`, { headers: { 'X-Request-Id': 'x","level":"critical","forged":"1' } });
+      assert.match(forged.headers.get('x-request-id'), /^[0-9a-f]{20}$/);
+      const kept = await fetch(`${s.url}/healthz`, { headers: { 'X-Request-Id': '0f8fad5b-d9cb-469f-a165-70867728950e' } });
+      assert.equal(kept.headers.get('x-request-id'), '0f8fad5b-d9cb-469f-a165-70867728950e');
+      await sleep(100);
+      const lines = s.log().trim().split('\n');
+      assert.equal(lines.length, 4, s.log());  // listening, and one line a request
+      assert.ok(!lines.some((l) => /^FORGED|^2026-11-27 00:00/.test(l)), s.log());
+      assert.doesNotMatch(s.log(), /forged|critical/);
+      assert.match(lines[3], /0f8fad5b-d9cb-469f-a165-70867728950e/);
+      if (format === 'json') for (const l of lines) assert.equal(typeof JSON.parse(l), 'object', l);
+      else assert.match(lines[1], /GET \/v1\/jobs\/abc%0A2026-11-27%2000:00:00.000%20info%20FORGED%0A 404/);
+    } finally { assert.equal(await stopServer(s), 0); }
+  }
+});
+
 maybe('auth')('an API key is required when configured', async () => {
   const s = await startServer(['--workers', '1'], { ITEAS_API_KEY: 'sekret' });
   try {
