@@ -463,7 +463,12 @@ int serve(const ServerConfig& cfg) {
   auto make_job = [&](const httplib::Request& req, Upload&& up, bool listed) -> std::shared_ptr<Job> {
     if (draining) throw HttpError{503, "draining", "the server is shutting down"};
     std::vector<std::pair<std::string, std::string>> pairs;
-    for (const auto& [k, v] : req.params) pairs.emplace_back(k, v);
+    for (const auto& [k, v] : req.params) {
+      // Which of two values would be meant is unknown: the last one was used.
+      if (!pairs.empty() && pairs.back().first == k)
+        throw HttpError{400, "bad_option", "option '" + k + "' is given more than once"};
+      pairs.emplace_back(k, v);
+    }
     Options options;
     std::string error, bad;
     if (!parse_options(pairs, &options, &error, &bad)) throw HttpError{400, "bad_option", error};

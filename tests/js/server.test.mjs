@@ -136,6 +136,9 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
       const body = await expectError(await post(q, box), 400, 'bad_option');
       assert.match(body.error.message, /option '/);
     }
+    // An option given twice: which value was meant is unknown (the last one was used).
+    const twice = await expectError(await post('?levels=1&mode=uniform&levels=2', box), 400, 'bad_option');
+    assert.match(twice.error.message, /option 'levels' is given more than once/);
   });
   await t.test('absurd declared counts', async () => {
     const gltf = JSON.stringify({ asset: { version: '2.0' }, accessors: [{ componentType: 5126, count: 2147483647, type: 'VEC3', min: [0, 0, 0], max: [1, 1, 1] }], meshes: [{ primitives: [{ attributes: { POSITION: 0 } }] }] });
