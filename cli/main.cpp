@@ -162,6 +162,23 @@ bool writable(const std::string& path) {
   return ::access(dir.c_str(), W_OK) == 0;
 }
 
+// Do OUT and --stats name one file (through links, "./", hard links)? Then
+// the statistics would replace the mesh, with exit 0. Devices (/dev/null)
+// may be named twice.
+bool same_file(const std::string& a, const std::string& b) {
+  struct stat sa, sb;
+  const bool has_a = ::stat(a.c_str(), &sa) == 0, has_b = ::stat(b.c_str(), &sb) == 0;
+  if (has_a && has_b) return S_ISREG(sa.st_mode) && sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+  if (has_a || has_b) return false;
+  // Neither exists yet: the same name in the same directory.
+  auto target = [](const std::string& path) {
+    const size_t slash = path.find_last_of('/');
+    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+    return resolved(dir) + "/" + path.substr(slash == std::string::npos ? 0 : slash + 1);
+  };
+  return target(a) == target(b);
+}
+
 // "iteas: cannot read|write PATH: the system's reason".
 int io_error(const char* what, const std::string& path) {
   const int e = errno;
@@ -264,6 +281,9 @@ int run(const std::vector<std::string>& args, bool refine) {
   std::string out_format = options.out.output.empty() ? extension_of(out) : options.out.output;
   if (out_format != "glb" && out_format != "gltf" && out_format != "drc" && out_format != "obj" && out_format != "ply")
     return usage("cannot tell the output format from '" + out + "': use .glb .gltf .drc .obj .ply or --output");
+  if (out == "-" && stats_path == "-") return usage("OUT and --stats cannot both be - (stdout)");
+  if (!stats_path.empty() && stats_path != "-" && out != "-" && same_file(out, stats_path))
+    return usage("OUT and --stats name the same file: the statistics would replace the mesh");
   for (const std::string& path : {out, stats_path})
     if (!path.empty() && !writable(path)) return io_error("write", path);
 

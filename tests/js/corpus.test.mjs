@@ -135,6 +135,28 @@ maybe('usage')('usage errors exit 2 and unreadable files exit 4', () => {
   assert.match(iteas(['inspect', path.join(tmp, 'does-not-exist.glb')]).stderr, /No such file or directory/);
 });
 
+// OUT and --stats naming one file (directly, through "./", a hard or a
+// symbolic link) or both stdout: the statistics replaced the mesh, exit 0.
+maybe('usage')('OUT and --stats cannot be the same file', () => {
+  const input = path.join(DATA, 'bunny-npm.obj');
+  const dir = fs.mkdtempSync(path.join(tmp, 'same-'));
+  const out = path.join(dir, 'out.glb');
+  const run = (outArg, statsArg) => iteas(['refine', input, '-o', outArg, '--output', 'glb', '--stats', statsArg,
+    '--mode', 'uniform', '--levels', '1', '--quiet']);
+  for (const [o, st] of [[out, out], [out, path.join(dir, '.', 'out.glb')], ['-', '-']]) {
+    const r = run(o, st);
+    assert.equal(r.code, 2, `${o} ${st}: ${r.stderr}`);
+    assert.match(r.stderr, /OUT and --stats (name the same file|cannot both be -)/);
+  }
+  assert.deepEqual(fs.readdirSync(dir), []);
+  assert.equal(run(out, path.join(dir, 'stats.json')).code, 0);
+  fs.linkSync(out, path.join(dir, 'hard.glb'));
+  fs.symlinkSync(out, path.join(dir, 'soft.glb'));
+  for (const other of ['hard.glb', 'soft.glb']) assert.equal(run(out, path.join(dir, other)).code, 2, other);
+  assert.equal(fs.readFileSync(out).subarray(0, 4).toString(), 'glTF');
+  assert.equal(run('/dev/null', '/dev/null').code, 0);
+});
+
 // "-" reads the input from stdin (the format told by its content).
 maybe('usage')('the input can come from stdin', () => {
   const input = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
