@@ -141,6 +141,12 @@ bool write_file(const std::string& given, const void* data, size_t size) {
   return ok;
 }
 
+// The directory a path names its file in ("." for a bare name).
+std::string directory_of(const std::string& path) {
+  const size_t slash = path.find_last_of('/');
+  return slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+}
+
 // Can |path| be written ("-" can)? Asked before the job, so that a wrong
 // path fails at once rather than after the refinement, and leaves the other
 // output untouched. False, with errno telling why: a directory, a missing or
@@ -156,10 +162,7 @@ bool writable(const std::string& path) {
     if (!S_ISREG(st.st_mode)) return ::access(path.c_str(), W_OK) == 0;  // a device, written in place
   }
   // A regular file is written beside itself and renamed: its directory.
-  const std::string target = resolved(path);
-  const size_t slash = target.find_last_of('/');
-  const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : target.substr(0, slash);
-  return ::access(dir.c_str(), W_OK) == 0;
+  return ::access(directory_of(resolved(path)).c_str(), W_OK) == 0;
 }
 
 // Do OUT and --stats name one file (through links, "./", hard links)? Then
@@ -173,8 +176,7 @@ bool same_file(const std::string& a, const std::string& b) {
   // Neither exists yet: the same name in the same directory.
   auto target = [](const std::string& path) {
     const size_t slash = path.find_last_of('/');
-    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
-    return resolved(dir) + "/" + path.substr(slash == std::string::npos ? 0 : slash + 1);
+    return resolved(directory_of(path)) + "/" + path.substr(slash == std::string::npos ? 0 : slash + 1);
   };
   return target(a) == target(b);
 }

@@ -7,8 +7,7 @@ std::vector<uint8_t> pack_glb(const std::string& json, const uint8_t* bin, size_
   const uint64_t padded_json = (uint64_t(json.size()) + 3) & ~uint64_t(3);
   const uint64_t padded_bin = (uint64_t(bin_size) + 3) & ~uint64_t(3);
   if (12 + 8 + padded_json + (bin ? 8 + padded_bin : 0) > UINT32_MAX) return {};
-  const uint32_t json_len = uint32_t((json.size() + 3) & ~size_t(3));
-  const uint32_t bin_len = uint32_t((bin_size + 3) & ~size_t(3));
+  const uint32_t json_len = uint32_t(padded_json), bin_len = uint32_t(padded_bin);
   const uint32_t total = 12 + 8 + json_len + (bin ? 8 + bin_len : 0);
   std::vector<uint8_t> out(total, 0);
   auto put = [&](size_t at, uint32_t v) { std::memcpy(out.data() + at, &v, 4); };

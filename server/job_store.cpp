@@ -25,20 +25,21 @@ namespace {
 std::string write_atomically(const std::string& target, const char* data, size_t size) {
   static thread_local std::mt19937_64 rng{std::random_device{}()};
   const std::string tmp = target + ".tmp" + std::to_string(rng());
+  auto failed = [&](const char* what, int e) {
+    return std::string("cannot ") + what + " " + tmp + ": " + std::error_code(e, std::generic_category()).message();
+  };
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) return "cannot create " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
+  if (fd < 0) return failed("create", errno);
   std::string error;
   for (size_t done = 0; done < size && error.empty();) {
     const ssize_t n = ::write(fd, data + done, size - done);
     if (n > 0) done += size_t(n);
     else if (n < 0 && errno == EINTR) continue;
-    else error = "cannot write " + tmp + ": " + std::error_code(n < 0 ? errno : EIO, std::generic_category()).message();
+    else error = failed("write", n < 0 ? errno : EIO);
   }
   // A network volume may report the failure only here.
-  if (::close(fd) != 0 && error.empty())
-    error = "cannot write " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
-  if (error.empty() && ::rename(tmp.c_str(), target.c_str()) != 0)
-    error = "cannot rename " + tmp + ": " + std::error_code(errno, std::generic_category()).message();
+  if (::close(fd) != 0 && error.empty()) error = failed("write", errno);
+  if (error.empty() && ::rename(tmp.c_str(), target.c_str()) != 0) error = failed("rename", errno);
   if (!error.empty()) ::unlink(tmp.c_str());
   return error;
 }

@@ -162,7 +162,7 @@ bool usable_request_id(const std::string& id) {
 
 // The request's path as the text log writes it: httplib decodes it, so a
 // %0A in the URL put a line of the client's own into the log; control
-// characters, spaces and backslashes are percent-encoded again.
+// characters, spaces, backslashes and '%' itself are percent-encoded again.
 std::string loggable_path(const std::string& path) {
   std::string out;
   out.reserve(path.size());
@@ -202,16 +202,30 @@ thread_local int64_t t_bytes_in = -1;  // a body read by read_upload (-1: req.bo
 // client, told "Connection: close", goes. Those are not logged or counted.
 thread_local bool t_closing = false;
 
-// Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
-// which some clients (Node 18's fetch) leave out.
 // Past the upload limit, or for an upload refused before it was read, up to
 // this many more bytes are read and dropped, so that the client gets its
 // answer on a connection it can keep using; past them it is closed.
 constexpr size_t kDrainBytes = size_t(16) << 20;
 
+// Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
+// which some clients (Node 18's fetch) leave out.
 constexpr const char* kBadMultipart =
     "the multipart body could not be read (boundaries malformed, or the closing one not ended by CRLF); "
     "send the mesh as the raw request body instead";
+
+// A POST's body through the handler's |reader|: |receive| gets the bytes
+// (of every part of a multipart body, each announced to |part| first).
+bool read_body(const httplib::Request& req, const httplib::ContentReader& reader,
+               const httplib::MultipartContentHeader& part, const httplib::ContentReceiver& receive) {
+  return req.is_multipart_form_data() ? reader(part, receive) : reader(receive);
+}
+
+// Some of the body stays unread after this answer: the client is told to
+// close the connection, and what httplib then parses from it is not logged.
+void close_after_answer(httplib::Response& res) {
+  res.set_header("Connection", "close");
+  t_closing = true;
+}
 
 }  // namespace
 
@@ -401,7 +415,8 @@ int serve(const ServerConfig& cfg) {
     Upload up;
     const size_t limit = size_t(cfg.max_upload_bytes);
     const bool declared = req.has_header("Content-Length") && !req.has_header("Transfer-Encoding");
-    bool over = false, in_mesh = false;
+    const bool multipart = req.is_multipart_form_data();
+    bool over = false, in_mesh = !multipart;
     size_t seen = 0;  // every part's bytes, for the limit
     auto keep = [&](const char* data, size_t n) {
       seen += n;
@@ -419,42 +434,29 @@ int serve(const ServerConfig& cfg) {
       return true;
     };
     // A declared length is the body's size unless it is encoded.
-    if (declared && !req.has_header("Content-Encoding") && !req.is_multipart_form_data()) {
+    if (declared && !req.has_header("Content-Encoding") && !multipart) {
       const uint64_t length = std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
       if (length <= limit) up.bytes.reserve(size_t(length));
     }
-    bool ok;
-    if (req.is_multipart_form_data()) {
-      ok = reader(
-          [&](const httplib::MultipartFormData& part) {
-            in_mesh = part.name == "mesh" && !up.has_mesh;
-            if (in_mesh) {
-              up.has_mesh = true;
-              up.filename = part.filename;
-            }
-            return true;
-          },
-          keep);
-    } else {
-      in_mesh = true;
-      ok = reader(keep);
-    }
+    const bool ok = read_body(req, reader, [&](const httplib::MultipartFormData& part) {
+      in_mesh = part.name == "mesh" && !up.has_mesh;
+      if (in_mesh) {
+        up.has_mesh = true;
+        up.filename = part.filename;
+      }
+      return true;
+    }, keep);
     t_bytes_in = int64_t(seen);
     // A declared length over the limit: httplib reads the body, drops it and
     // sets 413.
     const bool skipped = !ok && !over && declared && res.status == 413;
     if (over || skipped) {
-      if (!ok && !skipped) {  // some of it left unread
-        res.set_header("Connection", "close");
-        t_closing = true;
-      }
+      if (!ok && !skipped) close_after_answer(res);  // some of it left unread
       throw HttpError{413, "payload_too_large", "the body is over the server's upload limit"};
     }
     if (!ok) {
-      res.set_header("Connection", "close");
-      t_closing = true;
-      if (req.is_multipart_form_data())
-        throw HttpError{400, "bad_multipart", kBadMultipart};
+      close_after_answer(res);
+      if (multipart) throw HttpError{400, "bad_multipart", kBadMultipart};
       throw HttpError{400, "bad_body", "the request body could not be read (malformed chunked or compressed data)"};
     }
     return up;
@@ -557,15 +559,10 @@ int serve(const ServerConfig& cfg) {
         return seen <= size_t(cfg.max_upload_bytes) + kDrainBytes;
       };
       const int status = res.status;  // httplib sets 413 for a declared length over the limit
-      const bool ok = req.is_multipart_form_data()
-                          ? reader([](const httplib::MultipartFormData&) { return true; }, drop)
-                          : reader(drop);
+      const bool ok = read_body(req, reader, [](const httplib::MultipartFormData&) { return true; }, drop);
       res.status = status;
       t_bytes_in = int64_t(seen);
-      if (!ok) {
-        res.set_header("Connection", "close");
-        t_closing = true;
-      }
+      if (!ok) close_after_answer(res);
     };
   };
 
