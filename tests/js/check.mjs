@@ -226,6 +226,14 @@ export async function startServer(flags = [], env = {}, { fileSizeKiB } = {}) {
   return { proc, port, url: `http://127.0.0.1:${port}`, log: () => out };
 }
 
+// The server writes a request's log line after its response, and the line
+// reaches us through a pipe: wait (up to |ms|) until |test| holds for the log,
+// and hand back the log as it then is.
+export async function logWhen(s, test, ms = 15000) {
+  for (const end = Date.now() + ms; !test(s.log()) && Date.now() < end;) await new Promise((r) => setTimeout(r, 20));
+  return s.log();
+}
+
 export async function stopServer(s) {
   if (s.proc.exitCode !== null) return s.proc.exitCode;
   const exited = new Promise((resolve) => s.proc.on('exit', (code, signal) => resolve(code ?? signal)));
