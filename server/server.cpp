@@ -18,6 +18,7 @@
 #include <map>
 #include <random>
 #include <thread>
+#include <utility>
 
 #include <unistd.h>
 
@@ -43,9 +44,12 @@ double now_ms() {
 class Metrics {
  public:
   static constexpr double kBuckets[] = {0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60};
+  // |seconds| < 0: the request's start is unknown (it failed before routing);
+  // it is counted, and left out of the duration histogram.
   void observe(const std::string& route, int status, double seconds) {
     std::lock_guard<std::mutex> lock(mu_);
     ++requests_[{route, status}];
+    if (seconds < 0) return;
     auto& h = hist_[route];
     if (h.empty()) h.assign(std::size(kBuckets) + 1, 0);
     size_t i = 0;
@@ -164,6 +168,7 @@ bool usable_request_id(const std::string& id) {
 // %0A in the URL put a line of the client's own into the log; control
 // characters, spaces, backslashes and '%' itself are percent-encoded again.
 std::string loggable_path(const std::string& path) {
+  if (path.empty()) return "-";  // a request line httplib could not parse
   std::string out;
   out.reserve(path.size());
   for (unsigned char c : path) {
@@ -198,9 +203,18 @@ thread_local Clock::time_point t_request_start;
 thread_local std::string t_request_id;
 thread_local int64_t t_bytes_in = -1;  // a body read by read_upload (-1: req.body)
 // An upload was left unread after its answer: httplib 0.11 reads what follows
-// on the connection as requests (none parses; each gets a 400) until the
+// on the connection as requests (none parses; each gets a 400 or 414) until the
 // client, told "Connection: close", goes. Those are not logged or counted.
 thread_local bool t_closing = false;
+// The pre-routing handler ran for this request. httplib 0.11 answers some
+// requests before it (400: the request line or headers unreadable, or not
+// sent within the read timeout; 414: the URI too long; 416: a Range header it
+// cannot parse): those had no request id or start time of their own, and
+// were logged with the last request's on the thread.
+thread_local bool t_routed = false;
+// This answer is to the rest of an unread upload: not logged or counted.
+// (Set by the error handler, for what httplib could not parse.)
+thread_local bool t_unlogged = false;
 
 // Past the upload limit, or for an upload refused before it was read, up to
 // this many more bytes are read and dropped, so that the client gets its
@@ -226,6 +240,22 @@ void close_after_answer(httplib::Response& res) {
   res.set_header("Connection", "close");
   t_closing = true;
 }
+
+// httplib's connection threads, each connection starting with t_closing
+// cleared: it is a connection's state, kept in its thread's. Without this a
+// connection that followed a closed one on the thread had its first
+// unparsable request (a 414, say) taken for the rest of the other's upload,
+// and not logged.
+class ConnectionThreads : public httplib::ThreadPool {
+ public:
+  using httplib::ThreadPool::ThreadPool;
+  void enqueue(std::function<void()> connection) override {
+    httplib::ThreadPool::enqueue([connection = std::move(connection)] {
+      t_closing = false;
+      connection();
+    });
+  }
+};
 
 }  // namespace
 
@@ -346,7 +376,7 @@ int serve(const ServerConfig& cfg) {
   // that keep-alive clients cannot starve the API; each idles out after
   // read_timeout, and a stalled upload (slowloris) is dropped by it too.
   const int http_threads = cfg.http_threads > 0 ? cfg.http_threads : std::max(64, 8 * workers);
-  svr.new_task_queue = [http_threads] { return new httplib::ThreadPool(size_t(http_threads)); };
+  svr.new_task_queue = [http_threads] { return new ConnectionThreads(size_t(http_threads)); };
   svr.set_payload_max_length(size_t(cfg.max_upload_bytes));
   svr.set_read_timeout(cfg.read_timeout_s, 0);
   svr.set_write_timeout(cfg.read_timeout_s, 0);
@@ -359,6 +389,12 @@ int serve(const ServerConfig& cfg) {
     t_request_start = Clock::now();
     t_bytes_in = -1;
     t_closing = false;
+    t_routed = true;
+    // httplib 0.11 serves a Range header on any method and status: a POST
+    // with one got a slice of its refined mesh (206). Ranges are defined for
+    // GET only (RFC 9110 §14.2), so they are dropped for the others. The
+    // Request is a non-const local of httplib's, handed to us as const.
+    if (req.method != "GET" && req.method != "HEAD") const_cast<httplib::Request&>(req).ranges.clear();
     const std::string given = req.get_header_value("X-Request-Id");
     t_request_id = usable_request_id(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
@@ -368,17 +404,22 @@ int serve(const ServerConfig& cfg) {
     return httplib::Server::HandlerResponse::Unhandled;
   });
   svr.set_logger([&](const httplib::Request& req, const httplib::Response& res) {
-    if (t_closing && req.method.empty()) return;  // the rest of an unread upload
-    const double secs = std::chrono::duration<double>(Clock::now() - t_request_start).count();
+    const bool routed = std::exchange(t_routed, false);
+    if (std::exchange(t_unlogged, false)) return;
+    // Unrouted requests have no start time: their duration is not known.
+    const double secs = routed ? std::chrono::duration<double>(Clock::now() - t_request_start).count() : -1;
     const int64_t bytes_in = t_bytes_in >= 0 ? t_bytes_in : int64_t(req.body.size());
     metrics.observe(route_of(req.path), res.status, secs);
+    const std::string ms = secs < 0 ? std::string(json_log ? "null" : "-") : fmt::format("{:.3f}", secs * 1000);
+    // Only a method httplib parsed; the remote address is set after the headers.
+    const std::string method = usable_request_id(req.method) ? req.method : "-";
+    const std::string remote = req.remote_addr.empty() ? "-" : req.remote_addr;
     if (json_log)
-      logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{:.3f},"remote":"{}")",
-                   t_request_id, req.method, route_of(req.path), res.status, bytes_in, res.body.size(), secs * 1000,
-                   req.remote_addr);
+      logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{},"remote":"{}")",
+                   t_request_id, method, route_of(req.path), res.status, bytes_in, res.body.size(), ms, remote);
     else
-      logger->info("{} {} {} {} in={} out={} {:.3f}ms {}", t_request_id, req.method, loggable_path(req.path), res.status, bytes_in,
-                   res.body.size(), secs * 1000, req.remote_addr);
+      logger->info("{} {} {} {} in={} out={} {}{} {}", t_request_id, method, loggable_path(req.path), res.status, bytes_in,
+                   res.body.size(), ms, secs < 0 ? "" : "ms", remote);
   });
   svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
     std::string what = "unexpected error";
@@ -387,6 +428,23 @@ int serve(const ServerConfig& cfg) {
     send_error(res, 500, "internal", "internal error");
   });
   svr.set_error_handler([&](const httplib::Request& req, httplib::Response& res) {
+    // An error is answered whole: httplib 0.11 applied a Range header to
+    // error envelopes too (a 404 came back as 6 bytes of JSON, 206-style).
+    const_cast<httplib::Request&>(req).ranges.clear();
+    if (!t_routed) {
+      // Answered before routing: an id of its own, and the connection is
+      // closed after it (what follows on it cannot be trusted to be framed).
+      t_unlogged = t_closing;  // the rest of an upload this connection left unread
+      t_request_id = new_id();
+      res.set_header("X-Request-Id", t_request_id);
+      close_after_answer(res);
+      if (res.status == 414) return send_error(res, 414, "uri_too_long", "the request line is over 8,192 bytes");
+      if (res.status == 416) return send_error(res, 416, "bad_range", "the Range header could not be parsed");
+      if (res.status == 400)
+        return send_error(res, 400, "bad_request",
+                          "the request line or headers could not be read: malformed, too many, too long, "
+                          "or not all sent within the read timeout");
+    }
     if (!res.body.empty()) return;  // an envelope is already there
     if (res.status == 404) send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
     else if (res.status == 413) send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
