@@ -23,6 +23,7 @@
 #include <unistd.h>
 
 #include "core/parallel.h"
+#include "server/connection.h"
 #include "server/job_queue.h"
 #include "server/job_store.h"
 #include "io/memory_budget.h"
@@ -202,24 +203,20 @@ bool constant_time_equal(const std::string& a, const std::string& b) {
 thread_local Clock::time_point t_request_start;
 thread_local std::string t_request_id;
 thread_local int64_t t_bytes_in = -1;  // a body read by read_upload (-1: req.body)
-// An upload was left unread after its answer: httplib 0.11 reads what follows
-// on the connection as requests (none parses; each gets a 400 or 414) until the
-// client, told "Connection: close", goes. Those are not logged or counted.
-thread_local bool t_closing = false;
 // The pre-routing handler ran for this request. httplib 0.11 answers some
 // requests before it (400: the request line or headers unreadable, or not
 // sent within the read timeout; 414: the URI too long; 416: a Range header it
 // cannot parse): those had no request id or start time of their own, and
 // were logged with the last request's on the thread.
 thread_local bool t_routed = false;
-// This answer is to the rest of an unread upload: not logged or counted.
-// (Set by the error handler, for what httplib could not parse.)
-thread_local bool t_unlogged = false;
 
 // Past the upload limit, or for an upload refused before it was read, up to
 // this many more bytes are read and dropped, so that the client gets its
 // answer on a connection it can keep using; past them it is closed.
 constexpr size_t kDrainBytes = size_t(16) << 20;
+// What a request may send as its body, off the wire, on a route that takes
+// no upload (httplib reads it whole into memory).
+constexpr size_t kOtherBodyBytes = size_t(1) << 20;
 
 // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
 // which some clients (Node 18's fetch) leave out.
@@ -234,28 +231,14 @@ bool read_body(const httplib::Request& req, const httplib::ContentReader& reader
   return req.is_multipart_form_data() ? reader(part, receive) : reader(receive);
 }
 
-// Some of the body stays unread after this answer: the client is told to
-// close the connection, and what httplib then parses from it is not logged.
+// Some of the body stays unread after this answer, or what follows it on the
+// connection cannot be trusted: the client is told, and the connection is
+// closed after the answer. (httplib 0.11 kept reading it, and parsed the
+// rest of an upload as requests.)
 void close_after_answer(httplib::Response& res) {
   res.set_header("Connection", "close");
-  t_closing = true;
+  connection_close_after_answer();
 }
-
-// httplib's connection threads, each connection starting with t_closing
-// cleared: it is a connection's state, kept in its thread's. Without this a
-// connection that followed a closed one on the thread had its first
-// unparsable request (a 414, say) taken for the rest of the other's upload,
-// and not logged.
-class ConnectionThreads : public httplib::ThreadPool {
- public:
-  using httplib::ThreadPool::ThreadPool;
-  void enqueue(std::function<void()> connection) override {
-    httplib::ThreadPool::enqueue([connection = std::move(connection)] {
-      t_closing = false;
-      connection();
-    });
-  }
-};
 
 }  // namespace
 
@@ -288,6 +271,7 @@ bool parse_server_flags(const std::vector<std::string>& args, ServerConfig* c, s
       {"memory-limit", [c](const std::string& v) { return parse_byte_size(v, &c->memory_limit); }},  // bytes, or K/M/G
       {"grace", integer(0, 3600, &c->grace_s)},
       {"read-timeout", integer(1, 3600, &c->read_timeout_s)},
+      {"min-rate", integer(0, int64_t(1) << 40, &c->min_rate)},
       {"trim-delay", integer(0, 3600 * 1000, &c->trim_delay_ms)},
       {"lone-job-threads", integer(0, 256, &c->lone_job_threads)},
       {"web-root", [c](const std::string& v) { c->web_root = v; return true; }},
@@ -371,25 +355,31 @@ int serve(const ServerConfig& cfg) {
   std::atomic<int64_t> last_expiry{0};
   std::atomic<bool> draining{false};
 
-  httplib::Server svr;
+  // A keep-alive connection holds its thread: it is given back after a few
+  // requests or two idle seconds, so more clients than threads still take
+  // turns. A request's head must come within the read timeout, and its body
+  // and response at --min-rate (see server/connection.h).
+  ConnectionLimits connection_limits;
+  connection_limits.read_timeout_s = cfg.read_timeout_s;
+  connection_limits.keep_alive_timeout_s = std::min(2, cfg.read_timeout_s);
+  connection_limits.keep_alive_max = 8;
+  connection_limits.min_rate = cfg.min_rate;
+  GuardedServer svr(connection_limits);
   // Connection threads are separate from the refinement workers, and enough
-  // that keep-alive clients cannot starve the API; each idles out after
-  // read_timeout, and a stalled upload (slowloris) is dropped by it too.
+  // that keep-alive clients cannot starve the API.
   const int http_threads = cfg.http_threads > 0 ? cfg.http_threads : std::max(64, 8 * workers);
-  svr.new_task_queue = [http_threads] { return new ConnectionThreads(size_t(http_threads)); };
+  svr.new_task_queue = [http_threads] { return new httplib::ThreadPool(size_t(http_threads)); };
   svr.set_payload_max_length(size_t(cfg.max_upload_bytes));
-  svr.set_read_timeout(cfg.read_timeout_s, 0);
-  svr.set_write_timeout(cfg.read_timeout_s, 0);
-  // A keep-alive connection holds its thread: give it back after a few
-  // requests or two idle seconds, so more clients than threads still take turns.
-  svr.set_keep_alive_timeout(std::min(2, cfg.read_timeout_s));
-  svr.set_keep_alive_max_count(8);
+  // Off the wire, an upload may take its decoded limit, the bytes dropped
+  // past it, and its framing (chunk headers).
+  const size_t upload_wire_bytes = size_t(cfg.max_upload_bytes) + size_t(cfg.max_upload_bytes) / 64 + kDrainBytes + (64 << 10);
 
   svr.set_pre_routing_handler([&](const httplib::Request& req, httplib::Response& res) {
     t_request_start = Clock::now();
     t_bytes_in = -1;
-    t_closing = false;
     t_routed = true;
+    const bool upload = req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
+    connection_body_budget(upload ? upload_wire_bytes : kOtherBodyBytes);
     // httplib 0.11 serves a Range header on any method and status: a POST
     // with one got a slice of its refined mesh (206). Ranges are defined for
     // GET only (RFC 9110 §14.2), so they are dropped for the others. The
@@ -398,14 +388,24 @@ int serve(const ServerConfig& cfg) {
     const std::string given = req.get_header_value("X-Request-Id");
     t_request_id = usable_request_id(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
-    // Nothing is answered here: this runs before httplib reads the body, and an
-    // early answer would leave the body on a keep-alive connection, where it
-    // would be read as the next request. Authentication is in wrap().
+    // A body on a route that takes no upload is read whole by httplib, and
+    // decoded: 872 KB of gzip became 200 MB in memory. An encoded one is
+    // refused unread, and the connection closed after the answer.
+    const std::string encoding = req.get_header_value("Content-Encoding");
+    const bool has_body = req.has_header("Transfer-Encoding") || std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10) > 0;
+    if (!upload && has_body && !encoding.empty() && encoding != "identity") {
+      send_error(res, 415, "unsupported_encoding",
+                 "a body with a Content-Encoding is taken by the uploads alone (POST /v1/refine, /v1/jobs)");
+      close_after_answer(res);
+      return httplib::Server::HandlerResponse::Handled;
+    }
+    // Nothing else is answered here: this runs before httplib reads the body,
+    // and an early answer leaves it unread, which costs the connection.
+    // Authentication is in wrap(), which reads and drops the body.
     return httplib::Server::HandlerResponse::Unhandled;
   });
   svr.set_logger([&](const httplib::Request& req, const httplib::Response& res) {
     const bool routed = std::exchange(t_routed, false);
-    if (std::exchange(t_unlogged, false)) return;
     // Unrouted requests have no start time: their duration is not known.
     const double secs = routed ? std::chrono::duration<double>(Clock::now() - t_request_start).count() : -1;
     const int64_t bytes_in = t_bytes_in >= 0 ? t_bytes_in : int64_t(req.body.size());
@@ -434,16 +434,31 @@ int serve(const ServerConfig& cfg) {
     if (!t_routed) {
       // Answered before routing: an id of its own, and the connection is
       // closed after it (what follows on it cannot be trusted to be framed).
-      t_unlogged = t_closing;  // the rest of an upload this connection left unread
       t_request_id = new_id();
       res.set_header("X-Request-Id", t_request_id);
       close_after_answer(res);
+    }
+    switch (connection_limit_hit()) {
+      case LimitHit::kHeadTimeout:
+        return send_error(res, 408, "request_timeout",
+                          fmt::format("the request line and headers were not all sent within {} s", cfg.read_timeout_s));
+      case LimitHit::kHeadTooLarge:
+        if (res.status == 414) break;
+        return send_error(res, 431, "headers_too_large",
+                          fmt::format("the request line and headers are over {} KiB", kHeadBytes >> 10));
+      case LimitHit::kBodyTooLarge:
+        return send_error(res, 413, "payload_too_large",
+                          fmt::format("{} {} takes no body over {} KiB", req.method, req.path, kOtherBodyBytes >> 10));
+      case LimitHit::kTooSlow:
+        return send_error(res, 408, "request_timeout",
+                          fmt::format("the body came slower than {} bytes a second", cfg.min_rate));
+      case LimitHit::kNone:
+        break;
+    }
+    if (!t_routed) {
       if (res.status == 414) return send_error(res, 414, "uri_too_long", "the request line is over 8,192 bytes");
       if (res.status == 416) return send_error(res, 416, "bad_range", "the Range header could not be parsed");
-      if (res.status == 400)
-        return send_error(res, 400, "bad_request",
-                          "the request line or headers could not be read: malformed, too many, too long, "
-                          "or not all sent within the read timeout");
+      if (res.status == 400) return send_error(res, 400, "bad_request", "the request line or headers are malformed");
     }
     if (!res.body.empty()) return;  // an envelope is already there
     if (res.status == 404) send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
@@ -515,6 +530,8 @@ int serve(const ServerConfig& cfg) {
     }
     if (!ok) {
       close_after_answer(res);
+      if (connection_limit_hit() == LimitHit::kTooSlow)
+        throw HttpError{408, "request_timeout", fmt::format("the body came slower than {} bytes a second", cfg.min_rate)};
       if (multipart) throw HttpError{400, "bad_multipart", kBadMultipart};
       throw HttpError{400, "bad_body", "the request body could not be read (malformed chunked or compressed data)"};
     }

@@ -20,7 +20,8 @@ struct ServerConfig {
   int64_t result_bytes_cap = 1LL << 30;
   int64_t memory_limit = 0;        // bytes for uploads + work; 0: 3/4 of RAM or of the cgroup limit
   int grace_s = 30;                // SIGTERM: time running work gets to finish
-  int read_timeout_s = 10;         // a stalled client is dropped after this
+  int read_timeout_s = 10;         // a stalled client is dropped after this; a request's head must all come within it
+  int64_t min_rate = 16384;        // bytes/s a body or response averages once read_timeout has passed; 0: no rule
   int trim_delay_ms = 1000;        // idle time before freed memory goes back; 0: after every job
   int lone_job_threads = 0;        // a job alone in the queue gets these threads; 0: all cores
   std::string web_root;             // the page at /; empty: <binary dir>/web when it exists

@@ -233,14 +233,14 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
     assert.equal(dropped, 0, 'served while stalled clients hold connections');
     await Promise.all(stalled);
     assert.equal(dropped, 20, 'the read timeout drops a stalled connection');
-    // Each gets a 400 of its own, with a request id, and "Connection: close".
+    // Each gets a 408 of its own, with a request id, and "Connection: close".
     assert.equal(answers.length, 21);
     assert.equal(answers[0], '', 'no answer to a client gone mid-upload');
     for (const a of answers.slice(1)) {
-      assert.match(a, /^HTTP\/1\.1 400 /);
+      assert.match(a, /^HTTP\/1\.1 408 /);
       assert.match(a, /\r\nConnection: close\r\n/i);
       assert.match(a, /\r\nX-Request-Id: [0-9a-f]{20}\r\n/i);
-      assert.match(a, /"code":"bad_request","message":"the request line or headers could not be read/);
+      assert.match(a, /"code":"request_timeout","message":"the request line and headers were not all sent within 2 s"/);
     }
     assert.equal(new Set(answers.slice(1).map((a) => a.match(/X-Request-Id: (\w+)/i)[1])).size, 20);
   });
@@ -311,10 +311,11 @@ maybe('errors')('Range only on GET; requests answered before routing get their o
       sock.on('end', () => resolve(got));
       sock.on('error', reject);
     });
-    for (const payload of ['G"ET / HTTP/1.1\r\nHost: x\r\n\r\n', 'POST /v1/refine HTTP/1.1\r\nHost: x\r\n']) {
-      const answer = await raw(payload);  // the second never ends its headers
-      assert.match(answer, /^HTTP\/1\.1 400 /);
-      assert.match(answer, /"code":"bad_request"/);
+    for (const [payload, status, code] of [['G"ET / HTTP/1.1\r\nHost: x\r\n\r\n', 400, 'bad_request'],
+      ['POST /v1/refine HTTP/1.1\r\nHost: x\r\n', 408, 'request_timeout']]) {  // headers never ended
+      const answer = await raw(payload);
+      assert.match(answer, new RegExp(`^HTTP/1\\.1 ${status} `));
+      assert.match(answer, new RegExp(`"code":"${code}"`));
       ids.push(answer.match(/\r\nX-Request-Id: ([0-9a-f]{20})\r\n/i)?.[1]);
     }
     // One JSON line a request; the early ones under their own ids, with no
@@ -330,11 +331,86 @@ maybe('errors')('Range only on GET; requests answered before routing get their o
       assert.equal(line.ms, null);
     }
     assert.deepEqual(access.filter((l) => ids.includes(l.request_id)).map((l) => [l.status, l.method]),
-      [[416, 'GET'], [414, '-'], [400, '-'], [400, 'POST']]);
+      [[416, 'GET'], [414, '-'], [400, '-'], [408, 'POST']]);
     for (const l of access.filter((a) => !ids.includes(a.request_id))) assert.equal(typeof l.ms, 'number');
     const metrics = await (await fetch(`${s.url}/metrics`)).text();
     assert.match(metrics, /^iteas_requests_total\{route="other",status="414"\} 1$/m);
     assert.match(metrics, /^iteas_request_duration_seconds_count\{route="\/v1\/refine"\} 1$/m, 'the unread POST has no duration');
+  } finally { assert.equal(await stopServer(s), 0); }
+});
+
+// Sends |head| on a new connection, then |more| (each string or Buffer)
+// every |everyMs| until the server answers and closes, or |giveUpMs|:
+// resolves with what came back, and whether we were still sending.
+function converse(port, head, { more = [], everyMs = 200, giveUpMs = 10000 } = {}) {
+  return new Promise((resolve) => {
+    const sock = net.connect(port, '127.0.0.1');
+    let got = '';
+    let sending = true;
+    let timer;
+    const done = () => { clearInterval(timer); sending = false; sock.destroy(); };
+    sock.on('connect', () => {
+      sock.write(head);
+      let i = 0;
+      timer = setInterval(() => { if (sending && i < more.length) sock.write(more[i++]); }, everyMs);
+    });
+    sock.on('data', (d) => { got += d.toString('latin1'); });
+    sock.on('error', () => {});
+    sock.on('close', () => { const answeredWhileSending = sending; done(); resolve({ got, answeredWhileSending }); });
+    setTimeout(() => { if (sending) { sending = false; done(); } }, giveUpMs);
+  });
+}
+const peakKiB = (pid) => Number(fs.readFileSync(`/proc/${pid}/status`, 'utf8').match(/VmHWM:\s+(\d+)/)[1]);
+
+maybe('errors')('a connection is bounded: its head in time and size, a body a route takes no upload on, a slow body', async () => {
+  const s = await startServer(['--workers', '1', '--read-timeout', '1', '--min-rate', '100000', '--http-threads', '4']);
+  try {
+    const status = (got) => Number(got.match(/^HTTP\/1\.1 (\d{3})/)?.[1]);
+    const code = (got) => got.match(/"code":"(\w+)"/)?.[1];
+    // Four connections sending a header line every 200 ms, never ending the
+    // head (all four connection threads): each is answered 408 while it still
+    // sends (it held its thread for as long as it went on), and the server
+    // answers again.
+    const trickled = await Promise.all(Array.from({ length: 4 }, () =>
+      converse(s.port, 'GET /healthz HTTP/1.1\r\nHost: x\r\n', { more: Array(50).fill('X-A: b\r\n') })));
+    for (const t of trickled) {
+      assert.ok(t.answeredWhileSending, t.got);
+      assert.equal(status(t.got), 408, t.got);
+      assert.equal(code(t.got), 'request_timeout');
+    }
+    assert.equal((await fetch(`${s.url}/healthz`)).status, 200);
+    // A 32 MB request line: 414 without holding it (a 300 MB one took the
+    // server to 600 MB); 10,000 header lines (90 KB): 431.
+    const before = peakKiB(s.proc.pid);
+    const longLine = await converse(s.port, Buffer.concat([Buffer.from('GET /'), Buffer.alloc(32 << 20, 97)]));
+    assert.equal(status(longLine.got), 414, longLine.got.slice(0, 200));
+    assert.ok(peakKiB(s.proc.pid) - before < 16 << 10, `peak ${before} -> ${peakKiB(s.proc.pid)} KiB`);
+    const flood = await converse(s.port, `GET /healthz HTTP/1.1\r\nHost: x\r\n${'X-A: b\r\n'.repeat(10000)}\r\n`);
+    assert.equal(status(flood.got), 431, flood.got.slice(0, 200));
+    assert.equal(code(flood.got), 'headers_too_large');
+    // A body on a route that takes no upload: 1 MiB at most off the wire
+    // (httplib read it whole: 200 MB chunked took 338 MB), none encoded (it
+    // was decoded whole: 872 KB of gzip became 200 MB).
+    const chunk = Buffer.alloc(1 << 20, 0);
+    const put = await converse(s.port, 'PUT /v1/refine HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n',
+      { more: Array(8).fill(Buffer.concat([Buffer.from('100000\r\n'), chunk, Buffer.from('\r\n')])), everyMs: 20 });
+    assert.equal(status(put.got), 413, put.got.slice(0, 300));
+    assert.match(put.got, /PUT \/v1\/refine takes no body over 1024 KiB/);
+    const gz = zlib.gzipSync(Buffer.alloc(8 << 20, 0));
+    const del = await converse(s.port, Buffer.concat([Buffer.from(`DELETE /v1/jobs/abc HTTP/1.1\r\nHost: x\r\nContent-Encoding: gzip\r\nContent-Length: ${gz.length}\r\n\r\n`), gz]));
+    assert.equal(status(del.got), 415, del.got.slice(0, 300));
+    assert.equal(code(del.got), 'unsupported_encoding');
+    assert.ok(peakKiB(s.proc.pid) - before < 16 << 10, `peak ${before} -> ${peakKiB(s.proc.pid)} KiB`);
+    // An upload at 5 KB/s against --min-rate 100000: 408 once the read
+    // timeout has passed, while it still sends.
+    const slow = await converse(s.port, 'POST /v1/refine HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\nContent-Length: 100000\r\n\r\n',
+      { more: Array(100).fill(Buffer.alloc(1000, 32)) });
+    assert.ok(slow.answeredWhileSending, slow.got);
+    assert.equal(status(slow.got), 408, slow.got.slice(0, 300));
+    assert.match(slow.got, /the body came slower than 100000 bytes a second/);
+    // And the server still serves.
+    const box = fs.readFileSync(path.join(DATA, 'Box.glb'));
+    assert.equal((await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box, headers: { 'Content-Type': 'model/gltf-binary' } })).status, 200);
   } finally { assert.equal(await stopServer(s), 0); }
 });
 

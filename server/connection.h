@@ -1,0 +1,59 @@
+// The HTTP server's connections, read and written through a guarded stream.
+//
+// Debian's cpp-httplib 0.11 reads a request line and headers of any length
+// (a 300 MB request line took the server to 600 MB), for as long as bytes
+// keep coming (a client sending a header line a second held a connection
+// thread for ever: 64 such clients stopped the server), and buffers a body
+// no route reads whole. Its connection loop is a virtual function of
+// httplib::Server; GuardedServer replaces it with one over GuardedStream,
+// which bounds each request:
+//   * the head (request line and headers) must all come within the read
+//     timeout of its first byte, and within kHeadBytes;
+//   * the body may take the bytes its route allows (connection_body_budget);
+//   * a body and a response must each average min_rate bytes a second once
+//     the read timeout has passed since they began;
+//   * any single wait for the client is at most the read timeout.
+// A request that breaks a limit is answered (httplib's error handler sees
+// connection_limit_hit()) and its connection closed.
+#pragma once
+
+#include <httplib.h>
+
+#include <cstddef>
+#include <cstdint>
+
+namespace iteas {
+
+// The request line and headers, together.
+constexpr size_t kHeadBytes = size_t(64) << 10;
+
+struct ConnectionLimits {
+  int read_timeout_s = 10;
+  int keep_alive_timeout_s = 2;
+  int keep_alive_max = 8;   // requests a connection, then it is closed
+  int64_t min_rate = 16384; // bytes a second; 0: no rate rule
+};
+
+// Why the current request's stream stopped.
+enum class LimitHit { kNone, kHeadTimeout, kHeadTooLarge, kBodyTooLarge, kTooSlow };
+
+class GuardedServer : public httplib::Server {
+ public:
+  explicit GuardedServer(const ConnectionLimits& limits) : limits_(limits) {}
+
+ private:
+  bool process_and_close_socket(socket_t sock) override;
+  ConnectionLimits limits_;
+};
+
+// For handlers, on the connection's thread (no-ops elsewhere, as in tests
+// that call handlers directly):
+// The head is read; the body may take up to |bytes| bytes off the wire.
+void connection_body_budget(size_t bytes);
+// What stopped the current request's stream, if anything.
+LimitHit connection_limit_hit();
+// The connection is closed after the current answer (some of the body is
+// left unread, or what follows cannot be trusted to be framed).
+void connection_close_after_answer();
+
+}  // namespace iteas
