@@ -208,6 +208,13 @@ thread_local GuardedStream* t_stream = nullptr;
 
 }  // namespace
 
+GuardedServer::GuardedServer(const ConnectionLimits& limits) : limits_(limits) {
+  set_socket_options([](socket_t sock) {
+    const int yes = 1;
+    ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  });
+}
+
 bool GuardedServer::process_and_close_socket(socket_t sock) {
   GuardedStream strm(sock, limits_);
   t_stream = &strm;

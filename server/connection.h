@@ -39,7 +39,10 @@ enum class LimitHit { kNone, kHeadTimeout, kHeadTooLarge, kBodyTooLarge, kTooSlo
 
 class GuardedServer : public httplib::Server {
  public:
-  explicit GuardedServer(const ConnectionLimits& limits) : limits_(limits) {}
+  // Its listening socket takes SO_REUSEADDR alone: httplib's default set
+  // SO_REUSEPORT, so a second server on the same port started silently and
+  // the kernel split the connections between the two.
+  explicit GuardedServer(const ConnectionLimits& limits);
 
  private:
   bool process_and_close_socket(socket_t sock) override;

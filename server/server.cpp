@@ -184,6 +184,23 @@ std::string loggable_path(const std::string& path) {
   return out;
 }
 
+// Free text for the text log, on one line: control characters and
+// backslashes escaped (a message may quote what a client or the system said).
+std::string one_line(const std::string& text) {
+  std::string out;
+  out.reserve(text.size());
+  for (unsigned char c : text) {
+    if (c < 0x20 || c == 0x7f || c == '\\') {
+      char b[8];
+      std::snprintf(b, sizeof b, "\\x%02X", c);
+      out += b;
+    } else {
+      out += char(c);
+    }
+  }
+  return out;
+}
+
 std::string new_id() {
   static std::atomic<uint64_t> counter{0};
   thread_local std::mt19937_64 rng(std::random_device{}());
@@ -314,6 +331,17 @@ int serve(const ServerConfig& cfg) {
     logger->set_pattern("%Y-%m-%d %H:%M:%S.%e %l %v");
   logger->flush_on(spdlog::level::info);
   const bool json_log = cfg.log_format == "json";
+  // A line other than an access-log line: |fields| in the JSON log (an
+  // object's members: these lines were free text, which broke it), |text| in
+  // the text log, on one line.
+  auto log_event = [&](spdlog::level::level_enum level, const json& fields, const std::string& text) {
+    if (json_log) {
+      const std::string object = fields.dump(-1, ' ', false, json::error_handler_t::replace);
+      logger->log(level, "{}", object.substr(1, object.size() - 2));
+    } else {
+      logger->log(level, "{}", one_line(text));
+    }
+  };
 
   // Signals are taken by one thread with sigwait: block them everywhere first.
   sigset_t sigs;
@@ -335,7 +363,10 @@ int serve(const ServerConfig& cfg) {
   const JobStore store(cfg.job_dir);
   {
     std::string error;
-    if (!store.usable(&error)) { logger->error("{}", error); return 2; }
+    if (!store.usable(&error)) {
+      log_event(spdlog::level::err, {{"event", "job_store_unusable"}, {"message", error}}, error);
+      return 2;
+    }
   }
   Metrics metrics;
   queue.set_observer([&](Job& job) {  // job.mu held (JobQueue::set_observer)
@@ -349,7 +380,8 @@ int serve(const ServerConfig& cfg) {
     const std::string error = store.put(job.id, s, job.state == JobState::kDone ? &job.result : nullptr);
     if (!error.empty()) {
       metrics.store_error();
-      logger->error("job {}: the job store could not take it: {}", job.id, error);
+      log_event(spdlog::level::err, {{"event", "job_store_error"}, {"job", job.id}, {"message", error}},
+                "job " + job.id + ": the job store could not take it: " + error);
     }
   });
   std::atomic<int64_t> last_expiry{0};
@@ -424,7 +456,8 @@ int serve(const ServerConfig& cfg) {
   svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
     std::string what = "unexpected error";
     try { if (ep) std::rethrow_exception(ep); } catch (const std::exception& e) { what = e.what(); } catch (...) {}
-    logger->error("{} internal error: {}", t_request_id, what);
+    log_event(spdlog::level::err, {{"event", "internal_error"}, {"request_id", t_request_id}, {"message", what}},
+              t_request_id + " internal error: " + what);
     send_error(res, 500, "internal", "internal error");
   });
   svr.set_error_handler([&](const httplib::Request& req, httplib::Response& res) {
@@ -741,7 +774,8 @@ int serve(const ServerConfig& cfg) {
     }
   }
   if (!web_root.empty() && !svr.set_mount_point("/", web_root)) {
-    logger->error("cannot serve the web page from {}", web_root);
+    log_event(spdlog::level::err, {{"event", "web_root_unusable"}, {"path", web_root}},
+              "cannot serve the web page from " + web_root);
     return 2;
   }
   svr.set_file_extension_and_mimetype_mapping("wasm", "application/wasm");
@@ -754,7 +788,8 @@ int serve(const ServerConfig& cfg) {
     port = -1;
   }
   if (port < 0) {
-    logger->error("cannot listen on {}:{}", cfg.host, cfg.port);
+    log_event(spdlog::level::err, {{"event", "listen_failed"}, {"host", cfg.host}, {"port", cfg.port}},
+              "cannot listen on " + cfg.host + ":" + std::to_string(cfg.port));
     return 4;
   }
   logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"lone_job_threads":{},"memory_limit_mib":{},"trim_delay_ms":{})"
