@@ -471,7 +471,9 @@ int serve(const ServerConfig& cfg) {
       res.set_header("X-Request-Id", t_request_id);
       close_after_answer(res);
     }
-    switch (connection_limit_hit()) {
+    // A limit the connection's stream hit, unless a handler has answered
+    // already (the upload routes say it themselves).
+    switch (res.body.empty() ? connection_limit_hit() : LimitHit::kNone) {
       case LimitHit::kHeadTimeout:
         return send_error(res, 408, "request_timeout",
                           fmt::format("the request line and headers were not all sent within {} s", cfg.read_timeout_s));
@@ -565,6 +567,8 @@ int serve(const ServerConfig& cfg) {
       close_after_answer(res);
       if (connection_limit_hit() == LimitHit::kTooSlow)
         throw HttpError{408, "request_timeout", fmt::format("the body came slower than {} bytes a second", cfg.min_rate)};
+      if (connection_limit_hit() == LimitHit::kBodyTooLarge)  // framing past the wire allowance
+        throw HttpError{413, "payload_too_large", "the body is over the server's upload limit"};
       if (multipart) throw HttpError{400, "bad_multipart", kBadMultipart};
       throw HttpError{400, "bad_body", "the request body could not be read (malformed chunked or compressed data)"};
     }
