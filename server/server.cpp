@@ -165,17 +165,15 @@ bool usable_request_id(const std::string& id) {
   });
 }
 
-// The request's path as the text log writes it: httplib decodes it, so a
-// %0A in the URL put a line of the client's own into the log; control
-// characters, spaces, backslashes and '%' itself are percent-encoded again.
-std::string loggable_path(const std::string& path) {
-  if (path.empty()) return "-";  // a request line httplib could not parse
+// |text| with each byte |pick| chooses written as |format| gives its code
+// ("%%%02X", "\\x%02X").
+std::string escaped(const std::string& text, bool (*pick)(unsigned char), const char* format) {
   std::string out;
-  out.reserve(path.size());
-  for (unsigned char c : path) {
-    if (c <= 0x20 || c == 0x7f || c == '%' || c == '\\') {
-      char b[4];
-      std::snprintf(b, sizeof b, "%%%02X", c);
+  out.reserve(text.size());
+  for (unsigned char c : text) {
+    if (pick(c)) {
+      char b[8];
+      std::snprintf(b, sizeof b, format, c);
       out += b;
     } else {
       out += char(c);
@@ -184,21 +182,18 @@ std::string loggable_path(const std::string& path) {
   return out;
 }
 
+// The request's path as the text log writes it: httplib decodes it, so a
+// %0A in the URL put a line of the client's own into the log; control
+// characters, spaces, backslashes and '%' itself are percent-encoded again.
+std::string loggable_path(const std::string& path) {
+  if (path.empty()) return "-";  // a request line httplib could not parse
+  return escaped(path, [](unsigned char c) { return c <= 0x20 || c == 0x7f || c == '%' || c == '\\'; }, "%%%02X");
+}
+
 // Free text for the text log, on one line: control characters and
 // backslashes escaped (a message may quote what a client or the system said).
 std::string one_line(const std::string& text) {
-  std::string out;
-  out.reserve(text.size());
-  for (unsigned char c : text) {
-    if (c < 0x20 || c == 0x7f || c == '\\') {
-      char b[8];
-      std::snprintf(b, sizeof b, "\\x%02X", c);
-      out += b;
-    } else {
-      out += char(c);
-    }
-  }
-  return out;
+  return escaped(text, [](unsigned char c) { return c < 0x20 || c == 0x7f || c == '\\'; }, "\\x%02X");
 }
 
 std::string new_id() {

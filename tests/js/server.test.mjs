@@ -430,6 +430,13 @@ maybe('errors')('a port in use is refused, not shared; error lines of the JSON l
   const line = JSON.parse(notDir.stdout.trim());
   assert.equal(line.event, 'job_store_unusable');
   assert.match(line.message, /Box\.glb is not a directory/);
+  // In the text log, such a line stays one line whatever it quotes.
+  const odd = path.join(tmp, 'a\n2026-11-27 00:00:00.000 info forged');
+  fs.writeFileSync(odd, '');
+  const text = spawnSync(BIN, ['serve', '--port', '0', '--job-dir', odd], { encoding: 'utf8', timeout: 10000 });
+  assert.equal(text.status, 2, text.stdout + text.stderr);
+  assert.equal(text.stdout.trim().split('\n').length, 1, text.stdout);
+  assert.match(text.stdout, /a\\x0A2026-11-27 00:00:00\.000 info forged is not a directory/);
 });
 
 maybe('auth')('an API key is required when configured', async () => {
