@@ -58,6 +58,7 @@ class GuardedStream final : public httplib::Stream {
     budget_ = kHeadBytes;
     line_ended_ = false;
     hit_ = LimitHit::kNone;
+    cut_ = false;
   }
   void set_body_budget(size_t bytes) {
     phase_ = Phase::kBody;
@@ -66,6 +67,7 @@ class GuardedStream final : public httplib::Stream {
     budget_ = bytes;
   }
   LimitHit hit() const { return hit_; }
+  bool cut() const { return cut_; }
   bool close_requested() const { return close_; }
   void request_close() { close_ = true; }
 
@@ -120,18 +122,23 @@ class GuardedStream final : public httplib::Stream {
       phase_start_ = Clock::now();
       phase_bytes_ = 0;
     }
-    LimitHit why = LimitHit::kNone;
-    const int64_t ms = wait_ms(&why);
-    if (ms <= 0 || !wait_for(sock_, POLLOUT, ms)) {
-      if (hit_ == LimitHit::kNone) hit_ = LimitHit::kTooSlow;
-      return -1;
+    // Each send takes what the socket has room for (MSG_DONTWAIT): a blocking
+    // send of a whole 17 MB response waited for as long as the client did not
+    // read. httplib calls again for the rest.
+    for (;;) {
+      LimitHit why = LimitHit::kNone;
+      const int64_t ms = wait_ms(&why);
+      if (ms <= 0 || !wait_for(sock_, POLLOUT, ms)) {
+        if (hit_ == LimitHit::kNone) hit_ = LimitHit::kTooSlow;
+        cut_ = true;
+        return -1;
+      }
+      const ssize_t n = ::send(sock_, ptr, size, MSG_NOSIGNAL | MSG_DONTWAIT);
+      if (n < 0 && (errno == EINTR || errno == EAGAIN || errno == EWOULDBLOCK)) continue;
+      if (n < 0) cut_ = true;
+      if (n > 0) phase_bytes_ += uint64_t(n);
+      return n;
     }
-    ssize_t n;
-    do {
-      n = ::send(sock_, ptr, size, MSG_NOSIGNAL);
-    } while (n < 0 && errno == EINTR);
-    if (n > 0) phase_bytes_ += uint64_t(n);
-    return n;
   }
 
   void get_remote_ip_and_port(std::string& ip, int& port) const override { address(&getpeername, ip, port); }
@@ -201,6 +208,7 @@ class GuardedStream final : public httplib::Stream {
   size_t budget_ = kHeadBytes;
   bool line_ended_ = false;
   LimitHit hit_ = LimitHit::kNone;
+  bool cut_ = false;  // a write failed: the response did not all go
   bool close_ = false;
 };
 
@@ -235,6 +243,8 @@ void connection_body_budget(size_t bytes) {
 }
 
 LimitHit connection_limit_hit() { return t_stream ? t_stream->hit() : LimitHit::kNone; }
+
+bool connection_response_cut() { return t_stream && t_stream->cut(); }
 
 void connection_close_after_answer() {
   if (t_stream) t_stream->request_close();

@@ -55,6 +55,9 @@ class GuardedServer : public httplib::Server {
 void connection_body_budget(size_t bytes);
 // What stopped the current request's stream, if anything.
 LimitHit connection_limit_hit();
+// The current response could not all be written (the client went, or read
+// slower than the rate rule allows).
+bool connection_response_cut();
 // The connection is closed after the current answer (some of the body is
 // left unread, or what follows cannot be trusted to be framed).
 void connection_close_after_answer();

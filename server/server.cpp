@@ -441,12 +441,16 @@ int serve(const ServerConfig& cfg) {
     // Only a method httplib parsed; the remote address is set after the headers.
     const std::string method = usable_request_id(req.method) ? req.method : "-";
     const std::string remote = req.remote_addr.empty() ? "-" : req.remote_addr;
+    // A response the client did not all take is marked: its status says
+    // what was meant, not what arrived.
+    const bool cut = connection_response_cut();
     if (json_log)
-      logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{},"remote":"{}")",
-                   t_request_id, method, route_of(req.path), res.status, bytes_in, res.body.size(), ms, remote);
+      logger->info(R"("request_id":"{}","method":"{}","path":"{}","status":{},"bytes_in":{},"bytes_out":{},"ms":{},"remote":"{}"{})",
+                   t_request_id, method, route_of(req.path), res.status, bytes_in, res.body.size(), ms, remote,
+                   cut ? R"(,"cut_off":true)" : "");
     else
-      logger->info("{} {} {} {} in={} out={} {}{} {}", t_request_id, method, loggable_path(req.path), res.status, bytes_in,
-                   res.body.size(), ms, secs < 0 ? "" : "ms", remote);
+      logger->info("{} {} {} {} in={} out={} {}{} {}{}", t_request_id, method, loggable_path(req.path), res.status, bytes_in,
+                   res.body.size(), ms, secs < 0 ? "" : "ms", remote, cut ? " cut-off" : "");
   });
   svr.set_exception_handler([&](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
     std::string what = "unexpected error";

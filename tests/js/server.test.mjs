@@ -414,6 +414,38 @@ maybe('errors')('a connection is bounded: its head in time and size, a body a ro
   } finally { assert.equal(await stopServer(s), 0); }
 });
 
+maybe('slowread')('a client reading slower than --min-rate has its response cut off, and the log says so', async () => {
+  const s = await startServer(['--workers', '1', '--read-timeout', '1', '--min-rate', '10000000']);
+  try {
+    const bunny = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+    // 17 MB back, more than the sockets' buffers hold; the client reads
+    // nothing until the server has given up on it (its log line), then all.
+    const sock = net.connect(s.port, '127.0.0.1');
+    let got = Buffer.alloc(0);
+    const closed = new Promise((resolve) => sock.on('close', resolve));
+    sock.on('data', (d) => { got = Buffer.concat([got, d]); });
+    sock.on('error', () => {});
+    sock.write(`POST /v1/refine?mode=uniform&levels=4&compression=none HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\nContent-Length: ${bunny.length}\r\n\r\n`);
+    sock.write(bunny);
+    sock.pause();
+    const log = await logWhen(s, (l) => / cut-off$/m.test(l), 60000);
+    assert.match(log, /POST \/v1\/refine 200 in=110437 out=\d+ [\d.]+ms 127\.0\.0\.1 cut-off$/m);
+    sock.resume();
+    await closed;
+    const length = Number(got.toString('latin1').match(/\r\nContent-Length: (\d+)\r\n/i)[1]);
+    const head = got.indexOf('\r\n\r\n') + 4;
+    assert.ok(length > 16e6);
+    assert.ok(got.length - head < length, `${got.length - head} of ${length} bytes`);
+    // A client that reads gets it all on the same server.
+    const whole = await fetch(`${s.url}/v1/refine?mode=uniform&levels=4&compression=none`, { method: 'POST', body: bunny, headers: { 'Content-Type': 'application/octet-stream' } });
+    assert.equal((await whole.arrayBuffer()).byteLength, length);
+    const refined = (await logWhen(s, (l) => (l.match(/POST \/v1\/refine 200/g) || []).length === 2))
+      .split('\n').filter((l) => / POST \/v1\/refine 200 /.test(l));
+    assert.equal(refined.length, 2);
+    assert.doesNotMatch(refined[1], /cut-off/);
+  } finally { assert.equal(await stopServer(s), 0); }
+});
+
 maybe('errors')('a port in use is refused, not shared; error lines of the JSON log are JSON', async () => {
   const a = await startServer(['--workers', '1']);
   try {
