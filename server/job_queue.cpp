@@ -159,6 +159,16 @@ std::map<std::string, int64_t> JobQueue::counts_by_state() const {
   return out;
 }
 
+std::vector<std::string> JobQueue::unfinished_ids() const {
+  std::vector<std::string> ids;
+  std::lock_guard<std::mutex> lock(mu_);
+  for (const auto& [id, job] : jobs_) {
+    std::lock_guard<std::mutex> jl(job->mu);
+    if (!job->finished_state()) ids.push_back(id);
+  }
+  return ids;
+}
+
 void JobQueue::expire_locked() {
   const auto now = std::chrono::steady_clock::now();
   // TTL first, then the oldest finished results until under the byte cap.

@@ -110,6 +110,9 @@ class JobQueue {
   // Jobs started, by the threads of the core they got.
   std::map<int, int64_t> started_by_threads() const;
   std::map<std::string, int64_t> counts_by_state() const;
+  // The jobs (listed: reachable by id) not finished yet, queued or running:
+  // the shared store's entries this replica keeps alive.
+  std::vector<std::string> unfinished_ids() const;
 
  private:
   void work();

@@ -110,6 +110,12 @@ bool JobStore::remove(const std::string& id) const {
   return had;
 }
 
+void JobStore::touch(const std::string& id) const {
+  if (!enabled()) return;
+  std::error_code ec;
+  fs::last_write_time(path(id, ".json"), fs::file_time_type::clock::now(), ec);
+}
+
 void JobStore::expire(std::chrono::seconds ttl) const {
   if (!enabled()) return;
   std::error_code ec;

@@ -39,8 +39,12 @@ class JobStore {
   std::optional<StoredJob> get(const std::string& id) const;
   bool result(const std::string& id, std::string* bytes) const;
   bool remove(const std::string& id) const;
-  // Forgets jobs whose status is older than |ttl|.
+  // Forgets jobs whose status was last written or touched longer than |ttl|
+  // ago (and temporaries as old).
   void expire(std::chrono::seconds ttl) const;
+  // Marks the job's status as current: its replica still holds the job
+  // (queued or running), so the sweep of any replica keeps it.
+  void touch(const std::string& id) const;
 
  private:
   std::string path(const std::string& id, const char* ext) const;

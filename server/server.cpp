@@ -14,8 +14,11 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <condition_variable>
 #include <functional>
 #include <map>
+#include <mutex>
+#include <optional>
 #include <random>
 #include <thread>
 #include <utility>
@@ -252,6 +255,36 @@ void close_after_answer(httplib::Response& res) {
   connection_close_after_answer();
 }
 
+// Runs |step| every |every| on a thread of its own, from its construction
+// until its destruction.
+class Periodic {
+ public:
+  Periodic(std::chrono::milliseconds every, std::function<void()> step)
+      : thread_([this, every, step = std::move(step)] {
+          std::unique_lock<std::mutex> lock(mu_);
+          while (!stop_) {
+            lock.unlock();
+            step();
+            lock.lock();
+            cv_.wait_for(lock, every, [this] { return stop_; });
+          }
+        }) {}
+  ~Periodic() {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      stop_ = true;
+    }
+    cv_.notify_all();
+    thread_.join();
+  }
+
+ private:
+  std::mutex mu_;
+  std::condition_variable cv_;
+  bool stop_ = false;
+  std::thread thread_;  // last: it starts once the others exist
+};
+
 }  // namespace
 
 // --- flags -----------------------------------------------------------------------
@@ -379,8 +412,27 @@ int serve(const ServerConfig& cfg) {
                 "job " + job.id + ": the job store could not take it: " + error);
     }
   });
-  std::atomic<int64_t> last_expiry{0};
   std::atomic<bool> draining{false};
+
+  // The shared store's upkeep, on a thread of its own: every quarter of the
+  // TTL (at most a minute), this replica touches the status of each job it
+  // still holds, queued or running; every TTL (at most a minute) it sweeps
+  // what is older than the TTL. The sweep ran on submissions before, by file
+  // age alone: a job queued or running longer than the TTL lost its status,
+  // and the other replicas answered 404 for it until it ended. A replica that
+  // dies stops touching its jobs, and they go a TTL later.
+  std::optional<Periodic> upkeep;
+  if (store.enabled()) {
+    const auto ttl = std::chrono::milliseconds(int64_t(cfg.job_ttl_s) * 1000);
+    const auto sweep_every = std::min(ttl, std::chrono::milliseconds(60000));
+    auto next_sweep = std::chrono::steady_clock::now();
+    upkeep.emplace(std::clamp(ttl / 4, std::chrono::milliseconds(250), std::chrono::milliseconds(60000)), [&, sweep_every, next_sweep]() mutable {
+      for (const std::string& id : queue.unfinished_ids()) store.touch(id);
+      if (std::chrono::steady_clock::now() < next_sweep) return;
+      store.expire(std::chrono::seconds(cfg.job_ttl_s));
+      next_sweep = std::chrono::steady_clock::now() + sweep_every;
+    });
+  }
 
   // A keep-alive connection holds its thread: it is given back after a few
   // requests or two idle seconds, so more clients than threads still take
@@ -618,12 +670,6 @@ int serve(const ServerConfig& cfg) {
     return job;
   };
   auto submit = [&](const std::shared_ptr<Job>& job, httplib::Response& res) {
-    if (store.enabled()) {  // the shared store's TTL, swept at most once a minute by whichever replica
-      const int64_t now_s = int64_t(now_ms() / 1000);
-      int64_t last = last_expiry.load();
-      if (now_s - last >= 60 && last_expiry.compare_exchange_strong(last, now_s))
-        store.expire(std::chrono::seconds(cfg.job_ttl_s));
-    }
     switch (queue.submit(job)) {
       case Admission::kAccepted: return;
       case Admission::kClosed: throw HttpError{503, "draining", "the server is shutting down"};

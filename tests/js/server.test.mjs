@@ -594,6 +594,53 @@ maybe('replicas')('replicas sharing a job store: a job one reports done has its 
   }
 });
 
+maybe('replicas')('a job queued longer than the TTL stays in the shared store while its replica holds it, and goes a TTL after it ends', async () => {
+  // One worker on A and eight level-5 jobs (more than half a second each):
+  // the last waits in the queue for seconds, against a TTL of one second.
+  // The sweep went by file age alone, and took its status: B answered 404.
+  const dir = fs.mkdtempSync(path.join(tmp, 'jobs-ttl-'));
+  const a = await startServer(['--workers', '1', '--lone-job-threads', '1', '--job-dir', dir, '--job-ttl', '1']);
+  const b = await startServer(['--workers', '1', '--job-dir', dir, '--job-ttl', '1']);
+  const mesh = fs.readFileSync(path.join(DATA, 'bunny-npm.obj'));
+  const submit = async (server, query) => {
+    const sub = await fetch(`${server.url}/v1/jobs?${query}`, { method: 'POST', body: mesh, headers: { 'Content-Type': 'application/octet-stream' } });
+    assert.equal(sub.status, 202);
+    return sub.headers.get('location');
+  };
+  const state = async (server, loc) => {
+    const r = await fetch(server.url + loc);
+    return r.status === 200 ? (await r.json()).status : r.status;
+  };
+  const until = async (server, loc, wanted) => {
+    for (let k = 0; k < 6000; k++) {
+      const st = await state(server, loc);
+      if (wanted(st)) return st;
+      await sleep(10);
+    }
+    assert.fail(`${loc}: never ${wanted}`);
+  };
+  const file = (loc, ext) => path.join(dir, loc.split('/').pop() + ext);
+  try {
+    const jobs = [];
+    for (let i = 0; i < 8; i++) jobs.push(await submit(a, 'mode=uniform&levels=5'));
+    // Once a sweep has taken the first job's status (written when it ended,
+    // after the last job's was written when it was queued), the last job,
+    // still queued, is known to B.
+    await until(a, jobs[0], (st) => st === 'done');
+    for (let k = 0; k < 6000 && fs.existsSync(file(jobs[0], '.json')); k++) await sleep(10);
+    assert.ok(!fs.existsSync(file(jobs[0], '.json')), 'a sweep took the first job');
+    assert.equal(await state(a, jobs[7]), 'queued');
+    assert.equal(await state(b, jobs[7]), 'queued', 'B still knows the queued job');
+    await until(a, jobs[7], (st) => st === 'done');
+    // Ended, it goes a TTL later, from every replica.
+    assert.equal(await until(b, jobs[7], (st) => st === 404), 404);
+    assert.deepEqual(fs.readdirSync(dir).filter((f) => f.startsWith(jobs[7].split('/').pop())), []);
+  } finally {
+    await stopServer(a);
+    await stopServer(b);
+  }
+});
+
 maybe('replicas')('a job store that cannot take a result: the replica that ran the job answers, the others say why', async () => {
   // Replica A writes under a 200 KiB file size limit (as a full volume
   // would refuse): an uncompressed level-2 result (about 1 MB) cannot be
