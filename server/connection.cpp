@@ -217,6 +217,9 @@ thread_local GuardedStream* t_stream = nullptr;
 }  // namespace
 
 GuardedServer::GuardedServer(const ConnectionLimits& limits) : limits_(limits) {
+  // What httplib writes in each response's Keep-Alive header.
+  set_keep_alive_timeout(limits.keep_alive_timeout_s);
+  set_keep_alive_max_count(size_t(std::max(1, limits.keep_alive_max)));
   set_socket_options([](socket_t sock) {
     const int yes = 1;
     ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);

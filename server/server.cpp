@@ -453,6 +453,17 @@ int serve(const ServerConfig& cfg) {
   // past it, and its framing (chunk headers).
   const size_t upload_wire_bytes = size_t(cfg.max_upload_bytes) + size_t(cfg.max_upload_bytes) / 64 + kDrainBytes + (64 << 10);
 
+  // A client that asks before sending its body (curl does past 1 MB) is
+  // told 413 at once when the length it declares is over what the route
+  // takes; it got "100 Continue" before, sent the whole body, and was told
+  // then. (Answered before routing: its own id, and the connection closed.)
+  svr.set_expect_100_continue_handler([&](const httplib::Request& req, httplib::Response& res) {
+    const bool upload = req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
+    const uint64_t declared = std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+    if (declared <= (upload ? uint64_t(cfg.max_upload_bytes) : uint64_t(kOtherBodyBytes))) return 100;
+    res.status = 413;  // httplib 0.11 answers with res.status, not with what this returns
+    return 413;
+  });
   svr.set_pre_routing_handler([&](const httplib::Request& req, httplib::Response& res) {
     t_request_start = Clock::now();
     t_bytes_in = -1;

@@ -408,8 +408,18 @@ maybe('errors')('a connection is bounded: its head in time and size, a body a ro
     assert.ok(slow.answeredWhileSending, slow.got);
     assert.equal(status(slow.got), 408, slow.got.slice(0, 300));
     assert.match(slow.got, /the body came slower than 100000 bytes a second/);
-    // And the server still serves.
+    // A client that asks first (Expect: 100-continue, as curl does past 1 MB)
+    // with a length over the limit is told 413 at once, and sends nothing
+    // (it got "100 Continue", sent it all and was told then); under the
+    // limit it is asked to go on.
     const box = fs.readFileSync(path.join(DATA, 'Box.glb'));
+    const asks = (length, more) => converse(s.port, `POST /v1/refine HTTP/1.1\r\nHost: x\r\nContent-Type: model/gltf-binary\r\nExpect: 100-continue\r\nConnection: close\r\nContent-Length: ${length}\r\n\r\n`, { more });
+    const huge = await asks(1e12, []);
+    assert.match(huge.got, /^HTTP\/1\.1 413 /, huge.got.slice(0, 200));
+    assert.equal(code(huge.got), 'payload_too_large');
+    const fits = await asks(box.length, [box]);
+    assert.match(fits.got, /^HTTP\/1\.1 100 Continue\r\n\r\nHTTP\/1\.1 200 /, fits.got.slice(0, 200));
+    // And the server still serves.
     assert.equal((await fetch(`${s.url}/v1/refine`, { method: 'POST', body: box, headers: { 'Content-Type': 'model/gltf-binary' } })).status, 200);
   } finally { assert.equal(await stopServer(s), 0); }
 });
