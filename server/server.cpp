@@ -158,14 +158,25 @@ std::string route_of(const std::string& path) {
   return "other";
 }
 
-// A client's X-Request-Id is kept when it is 1-64 characters of
-// [A-Za-z0-9._:-] (UUIDs, trace ids); anything else gets a new id. It is
-// written into the log: a quote in it forged fields of a JSON log line.
-bool usable_request_id(const std::string& id) {
-  if (id.empty() || id.size() > 64) return false;
-  return std::all_of(id.begin(), id.end(), [](char c) {
+// Can |s| go into the log as it is: 1-64 characters of [A-Za-z0-9._:-]?
+// A client's X-Request-Id (UUIDs, trace ids) is kept only then, else it gets
+// a new id: a quote in it forged fields of a JSON log line. So is a method
+// (httplib may have set one it then refused).
+bool loggable_token(const std::string& s) {
+  if (s.empty() || s.size() > 64) return false;
+  return std::all_of(s.begin(), s.end(), [](char c) {
     return std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '_' || c == ':' || c == '-';
   });
+}
+
+// The routes that take an upload (read by read_upload, to --max-upload-bytes).
+bool is_upload(const httplib::Request& req) {
+  return req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
+}
+
+// The Content-Length a request declares (0 without one).
+uint64_t declared_length(const httplib::Request& req) {
+  return std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
 }
 
 // |text| with each byte |pick| chooses written as |format| gives its code
@@ -452,15 +463,14 @@ int serve(const ServerConfig& cfg) {
   // Off the wire, an upload may take its decoded limit, the bytes dropped
   // past it, and its framing (chunk headers).
   const size_t upload_wire_bytes = size_t(cfg.max_upload_bytes) + size_t(cfg.max_upload_bytes) / 64 + kDrainBytes + (64 << 10);
+  const std::string too_slow = fmt::format("the body came slower than {} bytes a second", cfg.min_rate);
 
   // A client that asks before sending its body (curl does past 1 MB) is
   // told 413 at once when the length it declares is over what the route
   // takes; it got "100 Continue" before, sent the whole body, and was told
   // then. (Answered before routing: its own id, and the connection closed.)
   svr.set_expect_100_continue_handler([&](const httplib::Request& req, httplib::Response& res) {
-    const bool upload = req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
-    const uint64_t declared = std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
-    if (declared <= (upload ? uint64_t(cfg.max_upload_bytes) : uint64_t(kOtherBodyBytes))) return 100;
+    if (declared_length(req) <= (is_upload(req) ? uint64_t(cfg.max_upload_bytes) : uint64_t(kOtherBodyBytes))) return 100;
     res.status = 413;  // httplib 0.11 answers with res.status, not with what this returns
     return 413;
   });
@@ -468,7 +478,7 @@ int serve(const ServerConfig& cfg) {
     t_request_start = Clock::now();
     t_bytes_in = -1;
     t_routed = true;
-    const bool upload = req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
+    const bool upload = is_upload(req);
     connection_body_budget(upload ? upload_wire_bytes : kOtherBodyBytes);
     // httplib 0.11 serves a Range header on any method and status: a POST
     // with one got a slice of its refined mesh (206). Ranges are defined for
@@ -476,13 +486,13 @@ int serve(const ServerConfig& cfg) {
     // Request is a non-const local of httplib's, handed to us as const.
     if (req.method != "GET" && req.method != "HEAD") const_cast<httplib::Request&>(req).ranges.clear();
     const std::string given = req.get_header_value("X-Request-Id");
-    t_request_id = usable_request_id(given) ? given : new_id();
+    t_request_id = loggable_token(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
     // A body on a route that takes no upload is read whole by httplib, and
     // decoded: 872 KB of gzip became 200 MB in memory. An encoded one is
     // refused unread, and the connection closed after the answer.
     const std::string encoding = req.get_header_value("Content-Encoding");
-    const bool has_body = req.has_header("Transfer-Encoding") || std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10) > 0;
+    const bool has_body = req.has_header("Transfer-Encoding") || declared_length(req) > 0;
     if (!upload && has_body && !encoding.empty() && encoding != "identity") {
       send_error(res, 415, "unsupported_encoding",
                  "a body with a Content-Encoding is taken by the uploads alone (POST /v1/refine, /v1/jobs)");
@@ -502,7 +512,7 @@ int serve(const ServerConfig& cfg) {
     metrics.observe(route_of(req.path), res.status, secs);
     const std::string ms = secs < 0 ? std::string(json_log ? "null" : "-") : fmt::format("{:.3f}", secs * 1000);
     // Only a method httplib parsed; the remote address is set after the headers.
-    const std::string method = usable_request_id(req.method) ? req.method : "-";
+    const std::string method = loggable_token(req.method) ? req.method : "-";
     const std::string remote = req.remote_addr.empty() ? "-" : req.remote_addr;
     // A response the client did not all take is marked: its status says
     // what was meant, not what arrived.
@@ -547,8 +557,7 @@ int serve(const ServerConfig& cfg) {
         return send_error(res, 413, "payload_too_large",
                           fmt::format("{} {} takes no body over {} KiB", req.method, req.path, kOtherBodyBytes >> 10));
       case LimitHit::kTooSlow:
-        return send_error(res, 408, "request_timeout",
-                          fmt::format("the body came slower than {} bytes a second", cfg.min_rate));
+        return send_error(res, 408, "request_timeout", too_slow);
       case LimitHit::kNone:
         break;
     }
@@ -606,7 +615,7 @@ int serve(const ServerConfig& cfg) {
     };
     // A declared length is the body's size unless it is encoded.
     if (declared && !req.has_header("Content-Encoding") && !multipart) {
-      const uint64_t length = std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+      const uint64_t length = declared_length(req);
       if (length <= limit) up.bytes.reserve(size_t(length));
     }
     const bool ok = read_body(req, reader, [&](const httplib::MultipartFormData& part) {
@@ -627,9 +636,9 @@ int serve(const ServerConfig& cfg) {
     }
     if (!ok) {
       close_after_answer(res);
-      if (connection_limit_hit() == LimitHit::kTooSlow)
-        throw HttpError{408, "request_timeout", fmt::format("the body came slower than {} bytes a second", cfg.min_rate)};
-      if (connection_limit_hit() == LimitHit::kBodyTooLarge)  // framing past the wire allowance
+      const LimitHit hit = connection_limit_hit();
+      if (hit == LimitHit::kTooSlow) throw HttpError{408, "request_timeout", too_slow};
+      if (hit == LimitHit::kBodyTooLarge)  // framing past the wire allowance
         throw HttpError{413, "payload_too_large", "the body is over the server's upload limit"};
       if (multipart) throw HttpError{400, "bad_multipart", kBadMultipart};
       throw HttpError{400, "bad_body", "the request body could not be read (malformed chunked or compressed data)"};

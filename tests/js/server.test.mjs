@@ -304,16 +304,9 @@ maybe('errors')('Range only on GET; requests answered before routing get their o
     };
     await early(await fetch(`${s.url}/healthz`, { headers: { Range: 'pages=1' } }), 416, 'bad_range');
     await early(await fetch(`${s.url}/${'a'.repeat(9000)}`), 414, 'uri_too_long');
-    const raw = (payload) => new Promise((resolve, reject) => {
-      const sock = net.connect(s.port, '127.0.0.1', () => sock.write(payload));
-      let got = '';
-      sock.on('data', (d) => { got += d.toString('latin1'); });
-      sock.on('end', () => resolve(got));
-      sock.on('error', reject);
-    });
     for (const [payload, status, code] of [['G"ET / HTTP/1.1\r\nHost: x\r\n\r\n', 400, 'bad_request'],
       ['POST /v1/refine HTTP/1.1\r\nHost: x\r\n', 408, 'request_timeout']]) {  // headers never ended
-      const answer = await raw(payload);
+      const answer = (await converse(s.port, payload)).got;
       assert.match(answer, new RegExp(`^HTTP/1\\.1 ${status} `));
       assert.match(answer, new RegExp(`"code":"${code}"`));
       ids.push(answer.match(/\r\nX-Request-Id: ([0-9a-f]{20})\r\n/i)?.[1]);
