@@ -327,7 +327,7 @@ int refine_or_convert(const std::string& in, const std::string& out, const std::
     return io_error("write", out);
   }
   if (!stats_path.empty()) {
-    const std::string text = result.stats.dump(2) + "\n";
+    const std::string text = iteas::json_text(result.stats, 2) + "\n";
     if (!write_file(stats_path, text.data(), text.size())) {
       return io_error("write", stats_path);
     }
@@ -362,7 +362,7 @@ int inspect(const std::vector<std::string>& args) {
       std::fprintf(stderr, "iteas: %s: %s (%s)\n", in.c_str(), s.message.c_str(), s.code.c_str());
       return exit_for(s);
     }
-    std::cout << j.dump(2) << "\n";
+    std::cout << iteas::json_text(j, 2) << "\n";
     return kExitOk;
   });
 }

@@ -8,8 +8,11 @@
 #include <vector>
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size);
+// Optional, as with libFuzzer: a target that needs setting up defines it.
+extern "C" int LLVMFuzzerInitialize(int* argc, char*** argv) __attribute__((weak));
 
 int main(int argc, char** argv) {
+  if (LLVMFuzzerInitialize) LLVMFuzzerInitialize(&argc, &argv);
   size_t n = 0;
   for (int i = 1; i < argc; ++i) {
     std::vector<std::filesystem::path> files;
@@ -26,6 +29,6 @@ int main(int argc, char** argv) {
       ++n;
     }
   }
-  std::printf("replayed %zu inputs\n", n);
+  std::fprintf(stderr, "replayed %zu inputs\n", n);
   return 0;
 }

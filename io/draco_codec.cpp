@@ -122,6 +122,10 @@ bool dequantised_bounds(const draco::Mesh& dm, const draco::PointAttribute& att,
                                                 : grid.ComputeParameters(att, bits);
   if (!ok) return false;
   const int32_t max_quantized = int32_t((1u << uint32_t(bits)) - 1);
+  // A range so small (denormal) that a step's inverse overflows makes every
+  // value's quantisation 0 * inf, a NaN converted to an integer (undefined;
+  // found by fuzz_http): the decoder's bounds are taken from the payload.
+  if (!std::isfinite(float(max_quantized) / grid.range())) return false;
   draco::Quantizer quantize;
   quantize.Init(grid.range(), max_quantized);
   draco::Dequantizer dequantize;

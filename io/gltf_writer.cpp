@@ -11,6 +11,7 @@
 #include "io/container.h"
 #include "io/document.h"
 #include "io/draco_codec.h"
+#include "io/pipeline.h"
 
 namespace iteas {
 namespace {
@@ -507,7 +508,7 @@ Status write_gltf(const Document& doc, const OutputOptions& opt, bool binary, co
   counts->meshes = int64_t(doc.meshes.size());
   if (extras) j["asset"]["extras"]["iteas"] = extras(*counts);
 
-  const std::string text = j.dump();
+  const std::string text = json_text(j);
   out->clear();
   if (!binary) {
     out->assign(text.begin(), text.end());

@@ -61,4 +61,12 @@ nlohmann::json stats_json(const Document& doc, const std::vector<RefineStats>& p
 
 nlohmann::json options_json(const Options& options, const std::string& output_format);
 
+// |j| as text, with any string that is not valid UTF-8 written with U+FFFD in
+// place of its bad bytes. nlohmann::json::dump throws on such a string, and
+// they come from clients: a request path or option name with a %AD in it, a
+// reader's message quoting a malformed token (or 32 bytes of it, which can
+// cut a character in two). Everything this program writes as JSON goes
+// through here.
+std::string json_text(const nlohmann::json& j, int indent = -1);
+
 }  // namespace iteas

@@ -189,4 +189,8 @@ json stats_json(const Document& doc, const std::vector<RefineStats>& per_mesh, c
   return j;
 }
 
+std::string json_text(const nlohmann::json& j, int indent) {
+  return j.dump(indent, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
 }  // namespace iteas

@@ -15,7 +15,7 @@ ctest --test-dir build --output-on-failure -j 2
 
 echo "[test] AddressSanitizer + UndefinedBehaviorSanitizer build"
 cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=Asan >/dev/null
-ninja -C build-asan iteas corner_table_test io_test refine_test fuzz_read_replay fuzz_options_replay fuzz_refine_replay
+ninja -C build-asan iteas corner_table_test io_test refine_test fuzz_read_replay fuzz_options_replay fuzz_refine_replay fuzz_http_replay
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 ctest --test-dir build-asan --output-on-failure -j 2 -R 'corner_table_test|io_test|fuzz_replay'
 build-asan/tests/refine_test --gtest_filter='*AdaptiveWithEverything*:*Planar*:*Cancellation*:*Budget*:*SmallestAngle*:*RingBlock*' --gtest_brief=1

@@ -14,6 +14,8 @@
 #include <system_error>
 #include <thread>
 
+#include "io/pipeline.h"
+
 namespace iteas {
 namespace fs = std::filesystem;
 
@@ -78,7 +80,7 @@ std::string JobStore::put(const std::string& id, const StoredJob& job, const std
   if (result) error = write_atomically(path(id, ".result"), reinterpret_cast<const char*>(result->data()), result->size());
   nlohmann::json record{{"status", job.status}, {"http_status", job.http_status}, {"content_type", job.content_type}};
   if (!error.empty()) record["result_error"] = error;
-  const std::string text = record.dump();
+  const std::string text = json_text(record);
   const std::string status_error = write_atomically(path(id, ".json"), text.data(), text.size());
   if (error.empty()) return status_error;
   return status_error.empty() ? error : error + "; " + status_error;

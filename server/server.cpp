@@ -130,7 +130,7 @@ struct HttpError {
 
 void send_error(httplib::Response& res, int status, const std::string& code, const std::string& message) {
   res.status = status;
-  res.set_content(json{{"error", {{"code", code}, {"message", message}, {"status", status}}}}.dump(), "application/json");
+  res.set_content(json_text(json{{"error", {{"code", code}, {"message", message}, {"status", status}}}}), "application/json");
 }
 
 int status_for(const Status& s) {
@@ -158,6 +158,24 @@ std::string route_of(const std::string& path) {
   return "other";
 }
 
+// The methods a route takes, for a 405's Allow header; empty where no route
+// has the path.
+std::string allowed_methods(const std::string& path) {
+  auto hex_id = [](const std::string& id) {
+    return !id.empty() && id.size() <= 64 && id.find_first_not_of("0123456789abcdef") == std::string::npos;
+  };
+  if (path == "/v1/refine" || path == "/v1/jobs") return "POST";
+  if (path == "/healthz" || path == "/readyz" || path == "/metrics" || path == "/v1/openapi.yaml") return "GET, HEAD";
+  static const std::string jobs = "/v1/jobs/", result = "/result";
+  if (path.rfind(jobs, 0) != 0) return "";
+  const std::string rest = path.substr(jobs.size());
+  if (hex_id(rest)) return "GET, HEAD, DELETE";
+  if (rest.size() > result.size() && rest.compare(rest.size() - result.size(), result.size(), result) == 0 &&
+      hex_id(rest.substr(0, rest.size() - result.size())))
+    return "GET, HEAD";
+  return "";
+}
+
 // Can |s| go into the log as it is: 1-64 characters of [A-Za-z0-9._:-]?
 // A client's X-Request-Id (UUIDs, trace ids) is kept only then, else it gets
 // a new id: a quote in it forged fields of a JSON log line. So is a method
@@ -177,6 +195,35 @@ bool is_upload(const httplib::Request& req) {
 // The Content-Length a request declares (0 without one).
 uint64_t declared_length(const httplib::Request& req) {
   return std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+}
+
+// What httplib 0.11 would frame wrongly (RFC 9112 §6): a Content-Length
+// that is not a number (it reads "abc" as 0 and "5x" as 5, so the body's
+// bytes were parsed as the next request) or given twice with different values;
+// a Transfer-Encoding other than "chunked" alone (it read "gzip, chunked" as
+// no encoding, and the body until the connection closed). The status, code
+// and message to answer, or status 0.
+struct FramingError {
+  int status = 0;
+  std::string code, message;
+};
+FramingError framing_error(const httplib::Request& req) {
+  const size_t lengths = req.get_header_value_count("Content-Length");
+  for (size_t i = 0; i < lengths; ++i) {
+    const std::string v = req.get_header_value("Content-Length", i);
+    if (v.empty() || v.size() > 19 || v.find_first_not_of("0123456789") != std::string::npos ||
+        v != req.get_header_value("Content-Length", 0))
+      return {400, "bad_content_length", "Content-Length must be one decimal number of bytes"};
+  }
+  const size_t encodings = req.get_header_value_count("Transfer-Encoding");
+  if (encodings == 0) return {};
+  std::string te = req.get_header_value("Transfer-Encoding");
+  te.erase(te.find_last_not_of(" \t") + 1);
+  te.erase(0, te.find_first_not_of(" \t"));
+  for (char& c : te) c = char(std::tolower(static_cast<unsigned char>(c)));
+  if (encodings > 1 || te != "chunked")
+    return {501, "unsupported_transfer_encoding", "the Transfer-Encoding taken is chunked alone (a Content-Encoding may compress an upload)"};
+  return {};
 }
 
 // |text| with each byte |pick| chooses written as |format| gives its code
@@ -375,7 +422,7 @@ int serve(const ServerConfig& cfg) {
   // the text log, on one line.
   auto log_event = [&](spdlog::level::level_enum level, const json& fields, const std::string& text) {
     if (json_log) {
-      const std::string object = fields.dump(-1, ' ', false, json::error_handler_t::replace);
+      const std::string object = json_text(fields);
       logger->log(level, "{}", object.substr(1, object.size() - 2));
     } else {
       logger->log(level, "{}", one_line(text));
@@ -480,14 +527,32 @@ int serve(const ServerConfig& cfg) {
     t_routed = true;
     const bool upload = is_upload(req);
     connection_body_budget(upload ? upload_wire_bytes : kOtherBodyBytes);
+    const std::string given = req.get_header_value("X-Request-Id");
+    t_request_id = loggable_token(given) ? given : new_id();
+    res.set_header("X-Request-Id", t_request_id);
     // httplib 0.11 serves a Range header on any method and status: a POST
     // with one got a slice of its refined mesh (206). Ranges are defined for
     // GET only (RFC 9110 §14.2), so they are dropped for the others. The
     // Request is a non-const local of httplib's, handed to us as const.
     if (req.method != "GET" && req.method != "HEAD") const_cast<httplib::Request&>(req).ranges.clear();
-    const std::string given = req.get_header_value("X-Request-Id");
-    t_request_id = loggable_token(given) ? given : new_id();
-    res.set_header("X-Request-Id", t_request_id);
+    // A body whose length httplib would take wrongly is refused unread, and
+    // the connection closed. Both a length and chunks: the chunks frame it,
+    // and the connection is closed after the answer (a request smuggled past
+    // a proxy that took the length instead ends with it).
+    const FramingError framing = framing_error(req);
+    if (framing.status) {
+      send_error(res, framing.status, framing.code, framing.message);
+      close_after_answer(res);
+      return httplib::Server::HandlerResponse::Handled;
+    }
+    if (req.has_header("Transfer-Encoding") && req.has_header("Content-Length")) close_after_answer(res);
+    // A request with neither a Content-Length nor a Transfer-Encoding has no
+    // body (RFC 9112 §6.3), but httplib 0.11 reads one until the connection
+    // closes for POST, PUT, PATCH and DELETE: `curl -X POST` of an upload
+    // route without a body waited the read timeout (10 s) for a 408. It is
+    // given the length it has.
+    if (!req.has_header("Content-Length") && !req.has_header("Transfer-Encoding"))
+      const_cast<httplib::Request&>(req).headers.emplace("Content-Length", "0");
     // A body on a route that takes no upload is read whole by httplib, and
     // decoded: 872 KB of gzip became 200 MB in memory. An encoded one is
     // refused unread, and the connection closed after the answer.
@@ -567,12 +632,20 @@ int serve(const ServerConfig& cfg) {
       if (res.status == 400) return send_error(res, 400, "bad_request", "the request line or headers are malformed");
     }
     if (!res.body.empty()) return;  // an envelope is already there
-    if (res.status == 404) send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
-    else if (res.status == 413) send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
-    else if (res.status == 405) send_error(res, 405, "method_not_allowed", "method not allowed on " + req.path);
-    else if (res.status == 400 && req.is_multipart_form_data())
+    const std::string allow = res.status == 404 ? allowed_methods(req.path) : "";
+    if (!allow.empty()) {
+      // A route with this path takes other methods (RFC 9110 §15.5.6).
+      res.set_header("Allow", allow);
+      send_error(res, 405, "method_not_allowed", req.path + " takes " + allow + ", not " + req.method);
+    } else if (res.status == 404) {
+      send_error(res, 404, "not_found", "no such route: " + req.method + " " + req.path);
+    } else if (res.status == 413) {
+      send_error(res, 413, "payload_too_large", "the body is over the server's upload limit");
+    } else if (res.status == 400 && req.is_multipart_form_data()) {
       send_error(res, 400, "bad_multipart", kBadMultipart);
-    else send_error(res, res.status, "bad_request", "the request could not be read");
+    } else {
+      send_error(res, res.status, "bad_request", "the request could not be read");
+    }
   });
 
   // Reads a POST's body through |reader|: the raw body, or a multipart
@@ -757,7 +830,7 @@ int serve(const ServerConfig& cfg) {
     if (job->state == JobState::kFailed) throw HttpError{status_for(job->error), job->error.code, job->error.message};
     if (job->state != JobState::kDone) throw HttpError{503, "cancelled", "the job was cancelled (the server is shutting down)"};
     metrics.triangles(job->stats["input"]["triangles"].get<int64_t>(), job->stats["output"]["triangles"].get<int64_t>());
-    res.set_header("X-IteAS-Stats", job->stats.dump());
+    res.set_header("X-IteAS-Stats", json_text(job->stats));
     res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
                     content_type_for(job->request.output_format));
   }));
@@ -767,7 +840,7 @@ int serve(const ServerConfig& cfg) {
     submit(job, res);
     res.status = 202;
     res.set_header("Location", "/v1/jobs/" + job->id);
-    res.set_content(job->status_json().dump(), "application/json");
+    res.set_content(json_text(job->status_json()), "application/json");
   }));
   svr.Get(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
@@ -775,10 +848,10 @@ int serve(const ServerConfig& cfg) {
       // Another replica's job, through the shared store.
       const auto stored = store.get(req.matches[1]);
       if (!stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
-      res.set_content(stored->status.dump(), "application/json");
+      res.set_content(json_text(stored->status), "application/json");
       return;
     }
-    res.set_content(job->status_json().dump(), "application/json");
+    res.set_content(json_text(job->status_json()), "application/json");
   }));
   svr.Get(R"(/v1/jobs/([0-9a-f]{1,64})/result)", wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
@@ -800,14 +873,14 @@ int serve(const ServerConfig& cfg) {
       std::string bytes;
       if (!store.result(req.matches[1], &bytes))
         throw HttpError{404, "job_not_found", "the job's result has expired or was deleted"};
-      if (stored->status.contains("statistics")) res.set_header("X-IteAS-Stats", stored->status["statistics"].dump());
+      if (stored->status.contains("statistics")) res.set_header("X-IteAS-Stats", json_text(stored->status["statistics"]));
       res.set_content(std::move(bytes), stored->content_type);
       return;
     }
     std::lock_guard<std::mutex> lock(job->mu);
     if (job->state == JobState::kFailed) throw HttpError{status_for(job->error), job->error.code, job->error.message};
     if (job->state != JobState::kDone) throw HttpError{409, "not_ready", std::string("the job is ") + job_state_name(job->state)};
-    res.set_header("X-IteAS-Stats", job->stats.dump());
+    res.set_header("X-IteAS-Stats", json_text(job->stats));
     res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
                     content_type_for(job->request.output_format));
   }));
@@ -816,7 +889,7 @@ int serve(const ServerConfig& cfg) {
     const bool local = queue.remove(id);
     const bool stored = store.remove(id);
     if (!local && !stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
-    res.set_content(json{{"id", id}, {"deleted", true}}.dump(), "application/json");
+    res.set_content(json_text(json{{"id", id}, {"deleted", true}}), "application/json");
   }));
   svr.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
     res.set_content(R"({"status":"ok"})", "application/json");
@@ -865,6 +938,7 @@ int serve(const ServerConfig& cfg) {
                         : "listening on {}:{} with {} workers (at most {} threads a job), memory limit {} MiB, trim delay {} ms",
                cfg.host, port, workers, resolve_threads(limits.lone_job_threads), limits.memory_limit >> 20,
                cfg.trim_delay_ms);
+  if (cfg.on_listening) cfg.on_listening(port);
   std::thread http([&] { svr.listen_after_bind(); });
 
   int sig = 0;

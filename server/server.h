@@ -2,6 +2,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -28,6 +29,9 @@ struct ServerConfig {
   std::string job_dir;              // shared job store (all replicas); empty: in memory only
   std::string api_key;             // empty: no authentication
   std::string log_format = "text"; // text or json
+  // Called once the port is bound, with its number (port 0 lets the system
+  // pick one): for callers that run the server in their own process.
+  std::function<void(int port)> on_listening;
 };
 
 // Parses `--name value` flags, each with an ITEAS_NAME environment
