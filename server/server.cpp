@@ -5,6 +5,7 @@
 
 #include <httplib.h>
 #include <signal.h>
+#include <strings.h>
 #include <spdlog/sinks/stdout_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -14,6 +15,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <condition_variable>
 #include <functional>
 #include <map>
@@ -195,6 +197,17 @@ bool is_upload(const httplib::Request& req) {
 // The Content-Length a request declares (0 without one).
 uint64_t declared_length(const httplib::Request& req) {
   return std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+}
+
+// The path of a request target in absolute form ("http://host:port/a/b"
+// -> "/a/b", "http://host" -> "/"); any other path as it is.
+std::string origin_form(const std::string& path) {
+  size_t scheme = 0;
+  for (const char* s : {"http://", "https://"})
+    if (path.size() >= std::strlen(s) && strncasecmp(path.c_str(), s, std::strlen(s)) == 0) scheme = std::strlen(s);
+  if (scheme == 0) return path;
+  const size_t slash = path.find('/', scheme);
+  return slash == std::string::npos ? "/" : path.substr(slash);
 }
 
 // What httplib 0.11 would frame wrongly (RFC 9112 §6): a Content-Length
@@ -530,6 +543,10 @@ int serve(const ServerConfig& cfg) {
     const std::string given = req.get_header_value("X-Request-Id");
     t_request_id = loggable_token(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
+    // A request target in absolute form ("GET http://host/healthz", as a
+    // client speaking to a proxy sends it) names the same route (RFC 9112
+    // §3.2.2: a server must accept it); httplib matched the whole URL: 404.
+    const_cast<httplib::Request&>(req).path = origin_form(req.path);
     // httplib 0.11 serves a Range header on any method and status: a POST
     // with one got a slice of its refined mesh (206). Ranges are defined for
     // GET only (RFC 9110 §14.2), so they are dropped for the others. The

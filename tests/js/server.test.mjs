@@ -216,6 +216,15 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
     await expectError(await fetch(`${server.url}/v1/jobs/not-hex`, { method: 'POST', body: 'x' }), 404, 'not_found');
     await expectError(await fetch(`${server.url}/v1/refined`, { method: 'POST', body: 'x' }), 404, 'not_found');
   });
+  await t.test('a request target in absolute form names the same route', async () => {
+    // As a client sends it to a proxy; httplib matched the whole URL (404).
+    const tet = 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n';
+    const { got } = await converse(server.port, `GET http://127.0.0.1:${server.port}/healthz HTTP/1.1\r\nHost: x\r\n\r\n` +
+      `POST HTTP://127.0.0.1/v1/refine?mode=uniform&levels=1&output=obj HTTP/1.1\r\nHost: x\r\nContent-Length: ${tet.length}\r\nConnection: close\r\n\r\n${tet}`);
+    assert.deepEqual([...got.matchAll(/HTTP\/1\.1 (\d{3}) /g)].map((m) => m[1]), ['200', '200'], got);
+    assert.match(got, /\{"status":"ok"\}/);
+    assert.equal(got.split('\n').filter((l) => l.startsWith('f ')).length, 16, 'the tetrahedron refined once (4 × 4 faces)');
+  });
   await t.test('a request with neither Content-Length nor Transfer-Encoding has no body', async () => {
     // httplib read one until the connection closed: the POST took the GET
     // after it as its body, and both waited for a 408.
