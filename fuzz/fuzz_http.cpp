@@ -47,17 +47,28 @@ int g_port = 0;
   std::abort();
 }
 
+// A connection to the server, or -1. A connect interrupted by a signal
+// (libFuzzer's timer) is tried again on a new socket.
 int connect_loopback() {
-  const int s = socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
   sockaddr_in a{};
   a.sin_family = AF_INET;
   a.sin_port = htons(uint16_t(g_port));
   a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  if (s < 0) return -1;
-  if (connect(s, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
-    close(s);
-    return -1;
+  int s = -1;
+  for (int attempt = 0; s < 0 && attempt < 10; ++attempt) {
+    s = socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    if (s < 0) return -1;
+    if (connect(s, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
+      const int error = errno;
+      close(s);
+      s = -1;
+      if (error != EINTR) {
+        errno = error;
+        return -1;
+      }
+    }
   }
+  if (s < 0) return -1;
   const int one = 1;
   setsockopt(s, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
   return s;
@@ -175,6 +186,10 @@ extern "C" int LLVMFuzzerInitialize(int*, char***) {
   cfg.min_rate = 16384;
   cfg.trim_delay_ms = 0;
   cfg.web_root = "";
+  // Other paths of the server, for a campaign's second worker: an API key
+  // (requests without it get 401 before their route) and a shared job store.
+  if (const char* key = std::getenv("FUZZ_HTTP_API_KEY")) cfg.api_key = key;
+  if (const char* dir = std::getenv("FUZZ_HTTP_JOB_DIR")) cfg.job_dir = dir;
   cfg.on_listening = [](int p) { port = p; };
   std::thread([cfg] { std::_Exit(iteas::serve(cfg) == 0 ? 0 : 3); }).detach();
   for (int i = 0; i < 1000 && port == 0; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
