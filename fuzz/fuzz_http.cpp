@@ -7,9 +7,9 @@
 //   * the server stops answering (a new connection is refused);
 //   * the connection neither answers nor closes within 20 s of the input's
 //     last byte (a hang: the server's own limits are 1-2 s here);
-//   * a response's status is 5xx other than 503 (overload) and 501 (a
-//     transfer coding the server does not take), or an answer does not
-//     start with a status line;
+//   * a response's status is 5xx other than 503 (overload), 501 (a method
+//     or transfer coding the server does not know) and 505 (an HTTP version
+//     it does not speak), or an answer does not start with a status line;
 //   * a complete request head (a blank line after a request line) gets no
 //     answer at all.
 // libFuzzer's coverage sees our code; Debian's httplib is a compiled library,
@@ -113,16 +113,16 @@ bool exchange(int s, const std::string& in, std::string* out, std::chrono::secon
 // Walks the responses in |out|, framed by their Content-Length or chunks (a
 // HEAD answer carries its length and no body: where the length's worth of
 // bytes does not end at the next status line, the body is taken as empty).
-// Every response must start with a status line; a 5xx other than 503 and 501
-// is a finding. Returns how many responses were read; the walk stops, without a
-// finding, where the framing cannot be followed.
+// Every response must start with a status line; a 5xx other than 503, 501
+// and 505 is a finding. Returns how many responses were read; the walk
+// stops, without a finding, where the framing cannot be followed.
 size_t check_responses(const std::string& in, const std::string& out) {
   size_t at = 0, n = 0;
   auto fail = [&](const std::string& what) { finding(what.c_str(), "request:\n" + in + "\nanswer:\n" + out); };
   while (at < out.size()) {
     if (out.compare(at, 9, "HTTP/1.1 ") != 0 || at + 12 > out.size()) fail("an answer does not start with a status line");
     const std::string code = out.substr(at + 9, 3);
-    if (code[0] == '5' && code != "503" && code != "501") fail("a " + code + " answer");
+    if (code[0] == '5' && code != "503" && code != "501" && code != "505") fail("a " + code + " answer");
     ++n;
     const size_t head_end = out.find("\r\n\r\n", at);
     if (head_end == std::string::npos) fail("an answer's headers do not end");
@@ -190,6 +190,7 @@ extern "C" int LLVMFuzzerInitialize(int*, char***) {
   // (requests without it get 401 before their route) and a shared job store.
   if (const char* key = std::getenv("FUZZ_HTTP_API_KEY")) cfg.api_key = key;
   if (const char* dir = std::getenv("FUZZ_HTTP_JOB_DIR")) cfg.job_dir = dir;
+  if (const char* format = std::getenv("FUZZ_HTTP_LOG_FORMAT")) cfg.log_format = format;
   cfg.on_listening = [](int p) { port = p; };
   std::thread([cfg] { std::_Exit(iteas::serve(cfg) == 0 ? 0 : 3); }).detach();
   for (int i = 0; i < 1000 && port == 0; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));

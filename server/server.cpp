@@ -22,6 +22,7 @@
 #include <mutex>
 #include <optional>
 #include <random>
+#include <set>
 #include <thread>
 #include <utility>
 
@@ -197,6 +198,21 @@ bool is_upload(const httplib::Request& req) {
 // The Content-Length a request declares (0 without one).
 uint64_t declared_length(const httplib::Request& req) {
   return std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
+}
+
+// Why httplib refused a request line that has the form "method target
+// version": a method it does not know (a token of letters, digits and
+// -._), or a version of the form HTTP/d.d other than 1.0 and 1.1.
+enum class RequestLineFault { kOther, kUnknownMethod, kUnsupportedVersion };
+RequestLineFault request_line_fault(const httplib::Request& req) {
+  static const std::set<std::string> methods{"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH", "PRI"};
+  const std::string& v = req.version;
+  const bool version_form = v.size() == 8 && v.compare(0, 5, "HTTP/") == 0 && std::isdigit(static_cast<unsigned char>(v[5])) &&
+                            v[6] == '.' && std::isdigit(static_cast<unsigned char>(v[7]));
+  if (!version_form || req.target.empty() || !loggable_token(req.method)) return RequestLineFault::kOther;
+  if (!methods.count(req.method)) return RequestLineFault::kUnknownMethod;
+  if (v != "HTTP/1.1" && v != "HTTP/1.0") return RequestLineFault::kUnsupportedVersion;
+  return RequestLineFault::kOther;
 }
 
 // The path of a request target in absolute form ("http://host:port/a/b"
@@ -646,7 +662,16 @@ int serve(const ServerConfig& cfg) {
     if (!t_routed) {
       if (res.status == 414) return send_error(res, 414, "uri_too_long", "the request line is over 8,192 bytes");
       if (res.status == 416) return send_error(res, 416, "bad_range", "the Range header could not be parsed");
-      if (res.status == 400) return send_error(res, 400, "bad_request", "the request line or headers are malformed");
+      if (res.status == 400) {
+        // httplib refuses a request line whose method or version it does not
+        // know as malformed; RFC 9110 §15.6.2 and §15.6.6 name them.
+        const RequestLineFault fault = request_line_fault(req);
+        if (fault == RequestLineFault::kUnknownMethod)
+          return send_error(res, 501, "unknown_method", "the method " + req.method + " is not one this server knows");
+        if (fault == RequestLineFault::kUnsupportedVersion)
+          return send_error(res, 505, "http_version_not_supported", "the server speaks HTTP/1.1 and HTTP/1.0, not " + req.version);
+        return send_error(res, 400, "bad_request", "the request line or headers are malformed");
+      }
     }
     if (!res.body.empty()) return;  // an envelope is already there
     const std::string allow = res.status == 404 ? allowed_methods(req.path) : "";

@@ -216,6 +216,17 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
     await expectError(await fetch(`${server.url}/v1/jobs/not-hex`, { method: 'POST', body: 'x' }), 404, 'not_found');
     await expectError(await fetch(`${server.url}/v1/refined`, { method: 'POST', body: 'x' }), 404, 'not_found');
   });
+  await t.test('a method or an HTTP version the server does not know: 501, 505 (httplib said 400, malformed)', async () => {
+    for (const [line, status, code] of [['FOO /healthz HTTP/1.1', 501, 'unknown_method'], ['GET /healthz HTTP/2.0', 505, 'http_version_not_supported'],
+      ['GET /healthz HTTP/1.1 x', 400, 'bad_request'], ['GET /healthz HTTX/1.1', 400, 'bad_request']]) {
+      const { got } = await converse(server.port, `${line}\r\nHost: x\r\n\r\n`);
+      assert.match(got, new RegExp(`^HTTP/1\\.1 ${status} `), `${line}: ${got}`);
+      assert.match(got, /\r\nConnection: close\r\n/i);
+      const body = JSON.parse(got.slice(got.indexOf('\r\n\r\n') + 4));
+      assertSchema(validateError, body, 'error envelope');
+      assert.equal(body.error.code, code, line);
+    }
+  });
   await t.test('a request target in absolute form names the same route', async () => {
     // As a client sends it to a proxy; httplib matched the whole URL (404).
     const tet = 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n';
