@@ -6,8 +6,11 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <strings.h>
+
 #include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <cerrno>
 #include <chrono>
 #include <cstring>
@@ -51,7 +54,9 @@ class GuardedStream final : public httplib::Stream {
     return false;
   }
 
-  void begin_request() {
+  void begin_request(bool last) {
+    last_ = last;
+    head_.clear();
     phase_ = Phase::kHead;
     phase_start_ = Clock::now();
     phase_bytes_ = 0;
@@ -69,6 +74,8 @@ class GuardedStream final : public httplib::Stream {
   LimitHit hit() const { return hit_; }
   bool cut() const { return cut_; }
   bool close_requested() const { return close_; }
+  bool last() const { return last_; }
+  const std::string& head() const { return head_; }
   void request_close() { close_ = true; }
 
   // Closes the socket. With |linger|, the client may still be sending (a
@@ -171,7 +178,10 @@ class GuardedStream final : public httplib::Stream {
   ssize_t took(const char* ptr, size_t n) {
     budget_ -= n;
     phase_bytes_ += n;
-    if (phase_ == Phase::kHead && !line_ended_) line_ended_ = std::memchr(ptr, '\n', n) != nullptr;
+    if (phase_ == Phase::kHead) {
+      if (!line_ended_) line_ended_ = std::memchr(ptr, '\n', n) != nullptr;
+      head_.append(ptr, n);  // at most kHeadBytes: the head's budget
+    }
     return ssize_t(n);
   }
 
@@ -210,7 +220,14 @@ class GuardedStream final : public httplib::Stream {
   LimitHit hit_ = LimitHit::kNone;
   bool cut_ = false;  // a write failed: the response did not all go
   bool close_ = false;
+  bool last_ = false;  // the connection's last request
+  std::string head_;   // the request line and headers as they came
 };
+
+// tchar of RFC 9110 §5.6.2: what a header name is made of.
+bool is_token_char(unsigned char c) {
+  return std::isalnum(c) || std::strchr("!#$%&'*+-.^_`|~", c) != nullptr;
+}
 
 thread_local GuardedStream* t_stream = nullptr;
 
@@ -231,7 +248,7 @@ bool GuardedServer::process_and_close_socket(socket_t sock) {
   t_stream = &strm;
   bool ret = false;
   for (int left = std::max(1, limits_.keep_alive_max); left > 0 && strm.wait_for_request(svr_sock_); --left) {
-    strm.begin_request();
+    strm.begin_request(left == 1);
     bool connection_closed = false;
     ret = process_request(strm, left == 1, connection_closed, nullptr);
     if (!ret || connection_closed || strm.close_requested() || strm.hit() != LimitHit::kNone) break;
@@ -251,6 +268,32 @@ bool connection_response_cut() { return t_stream && t_stream->cut(); }
 
 void connection_close_after_answer() {
   if (t_stream) t_stream->request_close();
+}
+
+bool connection_last_request() { return t_stream && t_stream->last(); }
+
+std::string connection_head_fault() {
+  if (!t_stream) return "";
+  const std::string& head = t_stream->head();
+  size_t at = head.find('\n');  // past the request line
+  while (at != std::string::npos && at + 1 < head.size()) {
+    const size_t begin = at + 1;
+    at = head.find('\n', begin);
+    std::string line = head.substr(begin, (at == std::string::npos ? head.size() : at) - begin);
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line.empty()) break;  // the end of the head
+    if (line[0] == ' ' || line[0] == '\t') return "a header line is folded onto the one before it";
+    const size_t colon = line.find(':');
+    if (colon == std::string::npos) return "a header line has no colon";
+    if (colon == 0 || !std::all_of(line.begin(), line.begin() + long(colon), [](char c) { return is_token_char(static_cast<unsigned char>(c)); }))
+      return "a header name is not a token (no space may come before its colon)";
+    const std::string name = line.substr(0, colon);
+    // httplib decodes %XX in every header value: "%36%34" framed as 64.
+    if ((strcasecmp(name.c_str(), "Content-Length") == 0 || strcasecmp(name.c_str(), "Transfer-Encoding") == 0) &&
+        line.find('%', colon) != std::string::npos)
+      return name + " is percent-encoded";
+  }
+  return "";
 }
 
 }  // namespace iteas

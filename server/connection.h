@@ -21,6 +21,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <string>
 
 namespace iteas {
 
@@ -61,5 +62,12 @@ bool connection_response_cut();
 // The connection is closed after the current answer (some of the body is
 // left unread, or what follows cannot be trusted to be framed).
 void connection_close_after_answer();
+// The current request is the connection's last (httplib then says
+// "Connection: close" itself).
+bool connection_last_request();
+// What is wrong with the current request's header lines as they came, which
+// httplib does not say (it drops a line without a colon or with a space
+// before it, and unfolds nothing), or empty. Called once the head is read.
+std::string connection_head_fault();
 
 }  // namespace iteas

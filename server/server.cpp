@@ -337,8 +337,11 @@ bool read_body(const httplib::Request& req, const httplib::ContentReader& reader
 // connection cannot be trusted: the client is told, and the connection is
 // closed after the answer. (httplib 0.11 kept reading it, and parsed the
 // rest of an upload as requests.)
-void close_after_answer(httplib::Response& res) {
-  res.set_header("Connection", "close");
+void close_after_answer(const httplib::Request& req, httplib::Response& res) {
+  // httplib writes its own when the request asked or was the connection's
+  // last: a second header would repeat it.
+  if (!connection_last_request() && req.get_header_value("Connection") != "close" && !res.has_header("Connection"))
+    res.set_header("Connection", "close");
   connection_close_after_answer();
 }
 
@@ -572,13 +575,15 @@ int serve(const ServerConfig& cfg) {
     // the connection closed. Both a length and chunks: the chunks frame it,
     // and the connection is closed after the answer (a request smuggled past
     // a proxy that took the length instead ends with it).
-    const FramingError framing = framing_error(req);
+    FramingError framing = framing_error(req);
+    if (const std::string fault = connection_head_fault(); !fault.empty())
+      framing = {400, "bad_header", fault};
     if (framing.status) {
       send_error(res, framing.status, framing.code, framing.message);
-      close_after_answer(res);
+      close_after_answer(req, res);
       return httplib::Server::HandlerResponse::Handled;
     }
-    if (req.has_header("Transfer-Encoding") && req.has_header("Content-Length")) close_after_answer(res);
+    if (req.has_header("Transfer-Encoding") && req.has_header("Content-Length")) close_after_answer(req, res);
     // A request with neither a Content-Length nor a Transfer-Encoding has no
     // body (RFC 9112 §6.3), but httplib 0.11 reads one until the connection
     // closes for POST, PUT, PATCH and DELETE: `curl -X POST` of an upload
@@ -594,7 +599,7 @@ int serve(const ServerConfig& cfg) {
     if (!upload && has_body && !encoding.empty() && encoding != "identity") {
       send_error(res, 415, "unsupported_encoding",
                  "a body with a Content-Encoding is taken by the uploads alone (POST /v1/refine, /v1/jobs)");
-      close_after_answer(res);
+      close_after_answer(req, res);
       return httplib::Server::HandlerResponse::Handled;
     }
     // Nothing else is answered here: this runs before httplib reads the body,
@@ -639,7 +644,7 @@ int serve(const ServerConfig& cfg) {
       // closed after it (what follows on it cannot be trusted to be framed).
       t_request_id = new_id();
       res.set_header("X-Request-Id", t_request_id);
-      close_after_answer(res);
+      close_after_answer(req, res);
     }
     // A limit the connection's stream hit, unless a handler has answered
     // already (the upload routes say it themselves).
@@ -746,11 +751,11 @@ int serve(const ServerConfig& cfg) {
     // sets 413.
     const bool skipped = !ok && !over && declared && res.status == 413;
     if (over || skipped) {
-      if (!ok && !skipped) close_after_answer(res);  // some of it left unread
+      if (!ok && !skipped) close_after_answer(req, res);  // some of it left unread
       throw HttpError{413, "payload_too_large", "the body is over the server's upload limit"};
     }
     if (!ok) {
-      close_after_answer(res);
+      close_after_answer(req, res);
       const LimitHit hit = connection_limit_hit();
       if (hit == LimitHit::kTooSlow) throw HttpError{408, "request_timeout", too_slow};
       if (hit == LimitHit::kBodyTooLarge)  // framing past the wire allowance
@@ -855,7 +860,7 @@ int serve(const ServerConfig& cfg) {
       const bool ok = read_body(req, reader, [](const httplib::MultipartFormData&) { return true; }, drop);
       res.status = status;
       t_bytes_in = int64_t(seen);
-      if (!ok) close_after_answer(res);
+      if (!ok) close_after_answer(req, res);
     };
   };
 
