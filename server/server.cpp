@@ -190,9 +190,22 @@ bool loggable_token(const std::string& s) {
   });
 }
 
+// The path of a request target in absolute form ("http://host:port/a/b"
+// -> "/a/b", "http://host" -> "/"); any other path as it is.
+std::string origin_form(const std::string& path) {
+  size_t scheme = 0;
+  for (const char* s : {"http://", "https://"})
+    if (path.size() >= std::strlen(s) && strncasecmp(path.c_str(), s, std::strlen(s)) == 0) scheme = std::strlen(s);
+  if (scheme == 0) return path;
+  const size_t slash = path.find('/', scheme);
+  return slash == std::string::npos ? "/" : path.substr(slash);
+}
+
 // The routes that take an upload (read by read_upload, to --max-upload-bytes).
+// Asked also before routing, where the path is still as it came.
 bool is_upload(const httplib::Request& req) {
-  return req.method == "POST" && (req.path == "/v1/refine" || req.path == "/v1/jobs");
+  const std::string path = origin_form(req.path);
+  return req.method == "POST" && (path == "/v1/refine" || path == "/v1/jobs");
 }
 
 // The Content-Length a request declares (0 without one).
@@ -213,17 +226,6 @@ RequestLineFault request_line_fault(const httplib::Request& req) {
   if (!methods.count(req.method)) return RequestLineFault::kUnknownMethod;
   if (v != "HTTP/1.1" && v != "HTTP/1.0") return RequestLineFault::kUnsupportedVersion;
   return RequestLineFault::kOther;
-}
-
-// The path of a request target in absolute form ("http://host:port/a/b"
-// -> "/a/b", "http://host" -> "/"); any other path as it is.
-std::string origin_form(const std::string& path) {
-  size_t scheme = 0;
-  for (const char* s : {"http://", "https://"})
-    if (path.size() >= std::strlen(s) && strncasecmp(path.c_str(), s, std::strlen(s)) == 0) scheme = std::strlen(s);
-  if (scheme == 0) return path;
-  const size_t slash = path.find('/', scheme);
-  return slash == std::string::npos ? "/" : path.substr(slash);
 }
 
 // What httplib 0.11 would frame wrongly (RFC 9112 §6): a Content-Length
@@ -557,15 +559,15 @@ int serve(const ServerConfig& cfg) {
     t_request_start = Clock::now();
     t_bytes_in = -1;
     t_routed = true;
+    // A request target in absolute form ("GET http://host/healthz", as a
+    // client speaking to a proxy sends it) names the same route (RFC 9112
+    // §3.2.2: a server must accept it); httplib matched the whole URL: 404.
+    const_cast<httplib::Request&>(req).path = origin_form(req.path);
     const bool upload = is_upload(req);
     connection_body_budget(upload ? upload_wire_bytes : kOtherBodyBytes);
     const std::string given = req.get_header_value("X-Request-Id");
     t_request_id = loggable_token(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
-    // A request target in absolute form ("GET http://host/healthz", as a
-    // client speaking to a proxy sends it) names the same route (RFC 9112
-    // §3.2.2: a server must accept it); httplib matched the whole URL: 404.
-    const_cast<httplib::Request&>(req).path = origin_form(req.path);
     // httplib 0.11 serves a Range header on any method and status: a POST
     // with one got a slice of its refined mesh (206). Ranges are defined for
     // GET only (RFC 9110 §14.2), so they are dropped for the others. The
@@ -574,7 +576,8 @@ int serve(const ServerConfig& cfg) {
     // A body whose length httplib would take wrongly is refused unread, and
     // the connection closed. Both a length and chunks: the chunks frame it,
     // and the connection is closed after the answer (a request smuggled past
-    // a proxy that took the length instead ends with it).
+    // a proxy that took the length instead ends with it). So are header
+    // lines httplib dropped or decoded (connection_head_fault).
     FramingError framing = framing_error(req);
     if (const std::string fault = connection_head_fault(); !fault.empty())
       framing = {400, "bad_header", fault};
