@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cstring>
 #include <string>
+#include <string_view>
 
 namespace iteas {
 namespace {
@@ -273,24 +274,27 @@ bool connection_last_request() { return t_stream && t_stream->last(); }
 
 std::string connection_head_fault() {
   if (!t_stream) return "";
-  const std::string& head = t_stream->head();
-  size_t at = head.find('\n');  // past the request line
-  while (at != std::string::npos && at + 1 < head.size()) {
-    const size_t begin = at + 1;
-    at = head.find('\n', begin);
-    std::string line = head.substr(begin, (at == std::string::npos ? head.size() : at) - begin);
-    if (!line.empty() && line.back() == '\r') line.pop_back();
+  std::string_view head = t_stream->head();
+  const size_t request_line = head.find('\n');
+  if (request_line == std::string_view::npos) return "";
+  head.remove_prefix(request_line + 1);
+  while (!head.empty()) {
+    const size_t end = head.find('\n');
+    std::string_view line = head.substr(0, end);
+    head.remove_prefix(end == std::string_view::npos ? head.size() : end + 1);
+    if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
     if (line.empty()) break;  // the end of the head
     if (line[0] == ' ' || line[0] == '\t') return "a header line is folded onto the one before it";
     const size_t colon = line.find(':');
-    if (colon == std::string::npos) return "a header line has no colon";
-    if (colon == 0 || !std::all_of(line.begin(), line.begin() + long(colon), [](char c) { return is_token_char(static_cast<unsigned char>(c)); }))
+    if (colon == std::string_view::npos) return "a header line has no colon";
+    const std::string_view name = line.substr(0, colon);
+    if (name.empty() || !std::all_of(name.begin(), name.end(), [](char c) { return is_token_char(static_cast<unsigned char>(c)); }))
       return "a header name is not a token (no space may come before its colon)";
-    const std::string name = line.substr(0, colon);
     // httplib decodes %XX in every header value: "%36%34" framed as 64.
-    if ((strcasecmp(name.c_str(), "Content-Length") == 0 || strcasecmp(name.c_str(), "Transfer-Encoding") == 0) &&
-        line.find('%', colon) != std::string::npos)
-      return name + " is percent-encoded";
+    for (const char* framing : {"Content-Length", "Transfer-Encoding"})
+      if (name.size() == std::strlen(framing) && strncasecmp(name.data(), framing, name.size()) == 0 &&
+          line.find('%', colon) != std::string_view::npos)
+        return std::string(framing) + " is percent-encoded";
   }
   return "";
 }

@@ -22,6 +22,7 @@
 #include <mutex>
 #include <optional>
 #include <random>
+#include <regex>
 #include <set>
 #include <thread>
 #include <utility>
@@ -161,21 +162,18 @@ std::string route_of(const std::string& path) {
   return "other";
 }
 
+// The job routes' patterns, as registered (httplib matches them whole).
+const char* const kJobRoute = R"(/v1/jobs/([0-9a-f]{1,64}))";
+const char* const kJobResultRoute = R"(/v1/jobs/([0-9a-f]{1,64})/result)";
+
 // The methods a route takes, for a 405's Allow header; empty where no route
 // has the path.
 std::string allowed_methods(const std::string& path) {
-  auto hex_id = [](const std::string& id) {
-    return !id.empty() && id.size() <= 64 && id.find_first_not_of("0123456789abcdef") == std::string::npos;
-  };
+  static const std::regex job(kJobRoute), job_result(kJobResultRoute);
   if (path == "/v1/refine" || path == "/v1/jobs") return "POST";
   if (path == "/healthz" || path == "/readyz" || path == "/metrics" || path == "/v1/openapi.yaml") return "GET, HEAD";
-  static const std::string jobs = "/v1/jobs/", result = "/result";
-  if (path.rfind(jobs, 0) != 0) return "";
-  const std::string rest = path.substr(jobs.size());
-  if (hex_id(rest)) return "GET, HEAD, DELETE";
-  if (rest.size() > result.size() && rest.compare(rest.size() - result.size(), result.size(), result) == 0 &&
-      hex_id(rest.substr(0, rest.size() - result.size())))
-    return "GET, HEAD";
+  if (std::regex_match(path, job)) return "GET, HEAD, DELETE";
+  if (std::regex_match(path, job_result)) return "GET, HEAD";
   return "";
 }
 
@@ -228,31 +226,28 @@ RequestLineFault request_line_fault(const httplib::Request& req) {
   return RequestLineFault::kOther;
 }
 
-// What httplib 0.11 would frame wrongly (RFC 9112 §6): a Content-Length
-// that is not a number (it reads "abc" as 0 and "5x" as 5, so the body's
-// bytes were parsed as the next request) or given twice with different values;
-// a Transfer-Encoding other than "chunked" alone (it read "gzip, chunked" as
-// no encoding, and the body until the connection closed). The status, code
-// and message to answer, or status 0.
+// What httplib 0.11 would take wrongly (RFC 9112 §5, §6): header lines it
+// drops or decodes (connection_head_fault); a Content-Length that is not a
+// number (it reads "abc" as 0 and "5x" as 5, so the body's bytes were parsed
+// as the next request) or given twice with different values; a
+// Transfer-Encoding other than "chunked" alone (it read "gzip, chunked" as no
+// encoding, and the body until the connection closed). The status, code and
+// message to answer, or status 0.
 struct FramingError {
   int status = 0;
   std::string code, message;
 };
 FramingError framing_error(const httplib::Request& req) {
-  const size_t lengths = req.get_header_value_count("Content-Length");
-  for (size_t i = 0; i < lengths; ++i) {
+  if (std::string fault = connection_head_fault(); !fault.empty()) return {400, "bad_header", std::move(fault)};
+  const std::string length = req.get_header_value("Content-Length");
+  for (size_t i = 0, n = req.get_header_value_count("Content-Length"); i < n; ++i) {
     const std::string v = req.get_header_value("Content-Length", i);
-    if (v.empty() || v.size() > 19 || v.find_first_not_of("0123456789") != std::string::npos ||
-        v != req.get_header_value("Content-Length", 0))
+    if (v.empty() || v.size() > 19 || v.find_first_not_of("0123456789") != std::string::npos || v != length)
       return {400, "bad_content_length", "Content-Length must be one decimal number of bytes"};
   }
+  // httplib's values come without the spaces round them.
   const size_t encodings = req.get_header_value_count("Transfer-Encoding");
-  if (encodings == 0) return {};
-  std::string te = req.get_header_value("Transfer-Encoding");
-  te.erase(te.find_last_not_of(" \t") + 1);
-  te.erase(0, te.find_first_not_of(" \t"));
-  for (char& c : te) c = char(std::tolower(static_cast<unsigned char>(c)));
-  if (encodings > 1 || te != "chunked")
+  if (encodings > 1 || (encodings == 1 && strcasecmp(req.get_header_value("Transfer-Encoding").c_str(), "chunked") != 0))
     return {501, "unsupported_transfer_encoding", "the Transfer-Encoding taken is chunked alone (a Content-Encoding may compress an upload)"};
   return {};
 }
@@ -576,11 +571,8 @@ int serve(const ServerConfig& cfg) {
     // A body whose length httplib would take wrongly is refused unread, and
     // the connection closed. Both a length and chunks: the chunks frame it,
     // and the connection is closed after the answer (a request smuggled past
-    // a proxy that took the length instead ends with it). So are header
-    // lines httplib dropped or decoded (connection_head_fault).
-    FramingError framing = framing_error(req);
-    if (const std::string fault = connection_head_fault(); !fault.empty())
-      framing = {400, "bad_header", fault};
+    // a proxy that took the length instead ends with it).
+    const FramingError framing = framing_error(req);
     if (framing.status) {
       send_error(res, framing.status, framing.code, framing.message);
       close_after_answer(req, res);
@@ -892,7 +884,7 @@ int serve(const ServerConfig& cfg) {
     res.set_header("Location", "/v1/jobs/" + job->id);
     res.set_content(json_text(job->status_json()), "application/json");
   }));
-  svr.Get(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
+  svr.Get(kJobRoute, wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
     if (!job) {
       // Another replica's job, through the shared store.
@@ -903,7 +895,7 @@ int serve(const ServerConfig& cfg) {
     }
     res.set_content(json_text(job->status_json()), "application/json");
   }));
-  svr.Get(R"(/v1/jobs/([0-9a-f]{1,64})/result)", wrap([&](const httplib::Request& req, httplib::Response& res) {
+  svr.Get(kJobResultRoute, wrap([&](const httplib::Request& req, httplib::Response& res) {
     auto job = queue.find(req.matches[1]);
     if (!job) {
       const auto stored = store.get(req.matches[1]);
@@ -934,7 +926,7 @@ int serve(const ServerConfig& cfg) {
     res.set_content(reinterpret_cast<const char*>(job->result.data()), job->result.size(),
                     content_type_for(job->request.output_format));
   }));
-  svr.Delete(R"(/v1/jobs/([0-9a-f]{1,64}))", wrap([&](const httplib::Request& req, httplib::Response& res) {
+  svr.Delete(kJobRoute, wrap([&](const httplib::Request& req, httplib::Response& res) {
     const std::string id = req.matches[1];
     const bool local = queue.remove(id);
     const bool stored = store.remove(id);

@@ -102,6 +102,8 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
   const post = (query, body, type = 'application/octet-stream') =>
     fetch(`${server.url}/v1/refine${query}`, { method: 'POST', body, headers: { 'Content-Type': type } });
   const box = fs.readFileSync(path.join(DATA, 'Box.glb'));
+  // A tetrahedron as OBJ text, for requests written byte by byte.
+  const tet = 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n';
   await t.test('broken files', async () => {
     for (const file of nastyMeshes()) {
       const res = await post('', fs.readFileSync(file));
@@ -229,7 +231,6 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
   });
   await t.test('a request target in absolute form names the same route', async () => {
     // As a client sends it to a proxy; httplib matched the whole URL (404).
-    const tet = 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n';
     const { got } = await converse(server.port, `GET http://127.0.0.1:${server.port}/healthz HTTP/1.1\r\nHost: x\r\n\r\n` +
       `POST HTTP://127.0.0.1/v1/refine?mode=uniform&levels=1&output=obj HTTP/1.1\r\nHost: x\r\nContent-Length: ${tet.length}\r\nConnection: close\r\n\r\n${tet}`);
     assert.deepEqual([...got.matchAll(/HTTP\/1\.1 (\d{3}) /g)].map((m) => m[1]), ['200', '200'], got);
@@ -269,7 +270,6 @@ maybe('errors')('bad requests get their documented 4xx and envelope, and the ser
     assert.match(te.got, /"code":"unsupported_transfer_encoding"/);
     // Chunks and a length: the chunks frame the body, and the connection is
     // closed after the answer (what follows is not read as a request).
-    const tet = 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n';
     const both = await converse(server.port, `POST /v1/refine?mode=uniform&levels=1&output=obj HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\nContent-Length: 3\r\n\r\n${tet.length.toString(16)}\r\n${tet}\r\n0\r\n\r\n` + next);
     assert.deepEqual(statuses(both.got), ['200'], both.got);
     assert.match(both.got, /\r\nConnection: close\r\n/i);
