@@ -235,8 +235,13 @@ export async function logWhen(s, test, ms = 15000) {
 }
 
 export async function stopServer(s) {
-  if (s.proc.exitCode !== null) return s.proc.exitCode;
-  const exited = new Promise((resolve) => s.proc.on('exit', (code, signal) => resolve(code ?? signal)));
-  s.proc.kill('SIGTERM');
-  return exited;
+  let code = s.proc.exitCode ?? s.proc.signalCode;
+  if (code === null) {
+    const exited = new Promise((resolve) => s.proc.on('exit', (c, signal) => resolve(c ?? signal)));
+    s.proc.kill('SIGTERM');
+    code = await exited;
+  }
+  // A sanitizer's report, or whatever else made it fail, is in its log.
+  if (code !== 0) process.stderr.write(`server exited ${code}; its log:\n${s.log()}\n`);
+  return code;
 }
