@@ -28,6 +28,11 @@ namespace iteas {
 // The request line and headers, together.
 constexpr size_t kHeadBytes = size_t(64) << 10;
 
+// The name httplib is given each Range header under (see defer_range in
+// connection.cpp): it answered 416 itself, before any handler, to one it
+// could not parse. The server takes it back before routing.
+constexpr char kDeferredRange[] = "Range ";
+
 struct ConnectionLimits {
   int read_timeout_s = 10;
   int keep_alive_timeout_s = 2;

@@ -26,6 +26,7 @@
 #include <set>
 #include <thread>
 #include <utility>
+#include <vector>
 
 #include <unistd.h>
 
@@ -206,6 +207,75 @@ bool is_upload(const httplib::Request& req) {
   return req.method == "POST" && (path == "/v1/refine" || path == "/v1/jobs");
 }
 
+// A Range header the connection's stream deferred (kDeferredRange) gets its
+// name back, and the request the ranges it asks for, when it is a GET and
+// there is one such header that parses as bytes ranges. Any other is
+// dropped (httplib answers a file of the web page 206 whenever the request
+// has a Range header), and so ignored (RFC 9110 §14.2: Range is defined for GET alone, a unit the server
+// does not know must be ignored, and a malformed one may be). httplib
+// answered the malformed ones 416 itself, and honoured the others on any
+// method and status. Several ranges are taken on the API's routes alone,
+// which fit_ranges checks: the web page's files are sliced by httplib.
+void take_deferred_range(httplib::Request& req) {
+  std::vector<std::string> values;
+  const auto [first, last] = req.headers.equal_range(kDeferredRange);
+  for (auto it = first; it != last; ++it) values.push_back(it->second);
+  req.headers.erase(first, last);
+  req.ranges.clear();
+  if (req.method != "GET" || values.size() != 1) return;
+  httplib::Ranges ranges;
+  if (!httplib::detail::parse_range_header(values.front(), ranges)) return;
+  // httplib's parser takes "bytes=-" as a range (the whole); it is none.
+  for (const auto& [from, to] : ranges)
+    if (from < 0 && to < 0) return;
+  if (ranges.size() > 1 && route_of(req.path) == "other") return;
+  req.ranges = std::move(ranges);
+  req.headers.emplace("Range", values.front());
+}
+
+// More ranges than this in one request are not served one by one.
+constexpr size_t kMaxRanges = 16;
+
+// The ranges of a GET, fitted to its answer before httplib slices it (RFC
+// 9110 §14.1.2): a last position past the end ends at the end (httplib
+// wrote "bytes 2-99999/60" for a 60-byte answer), and a range that starts
+// past it, or a suffix of no bytes, is dropped. When none is left, 416 with
+// "Content-Range: bytes */length" (httplib answered an empty 416). Ranges
+// that together ask for more than the answer, or more than kMaxRanges of
+// them, get the whole answer (RFC 9110 §14.2 lets a server ignore them):
+// httplib built every part in memory, so 2,700 copies of "0-" in an 8 KB
+// header turned a 708 KB result into a 1.9 GB answer. An answer whose
+// handler set its status is whole: httplib sliced a body but kept a 200.
+void fit_ranges(httplib::Request& req, httplib::Response& res) {
+  if (req.ranges.empty()) return;
+  if (res.status != -1) {
+    req.ranges.clear();
+    return;
+  }
+  const auto size = static_cast<ssize_t>(res.body.size());
+  httplib::Ranges fitted;
+  for (auto [from, to] : req.ranges) {
+    if (from < 0) {  // a suffix: the last |to| bytes
+      from = std::max<ssize_t>(0, size - to);
+      to = to > 0 ? size - 1 : -1;
+    } else {
+      to = to < 0 ? size - 1 : std::min(to, size - 1);
+    }
+    if (from < size && from <= to) fitted.emplace_back(from, to);
+  }
+  ssize_t asked = 0;
+  for (const auto& [from, to] : fitted) asked += to - from + 1;
+  if (asked > size || fitted.size() > kMaxRanges) {
+    req.ranges.clear();
+    return;
+  }
+  req.ranges = std::move(fitted);
+  if (!req.ranges.empty()) return;
+  send_error(res, 416, "range_not_satisfiable",
+             fmt::format("no range of the Range header is within the answer's {} bytes", size));
+  res.set_header("Content-Range", fmt::format("bytes */{}", size));
+}
+
 // The Content-Length a request declares (0 without one).
 uint64_t declared_length(const httplib::Request& req) {
   return std::strtoull(req.get_header_value("Content-Length").c_str(), nullptr, 10);
@@ -304,8 +374,8 @@ thread_local std::string t_request_id;
 thread_local int64_t t_bytes_in = -1;  // a body read by read_upload (-1: req.body)
 // The pre-routing handler ran for this request. httplib 0.11 answers some
 // requests before it (400: the request line or headers unreadable, or not
-// sent within the read timeout; 414: the URI too long; 416: a Range header it
-// cannot parse): those had no request id or start time of their own, and
+// sent within the read timeout; 414: the URI too long): those had no
+// request id or start time of their own, and
 // were logged with the last request's on the thread.
 thread_local bool t_routed = false;
 
@@ -563,11 +633,6 @@ int serve(const ServerConfig& cfg) {
     const std::string given = req.get_header_value("X-Request-Id");
     t_request_id = loggable_token(given) ? given : new_id();
     res.set_header("X-Request-Id", t_request_id);
-    // httplib 0.11 serves a Range header on any method and status: a POST
-    // with one got a slice of its refined mesh (206). Ranges are defined for
-    // GET only (RFC 9110 §14.2), so they are dropped for the others. The
-    // Request is a non-const local of httplib's, handed to us as const.
-    if (req.method != "GET" && req.method != "HEAD") const_cast<httplib::Request&>(req).ranges.clear();
     // A body whose length httplib would take wrongly is refused unread, and
     // the connection closed. Both a length and chunks: the chunks frame it,
     // and the connection is closed after the answer (a request smuggled past
@@ -579,6 +644,10 @@ int serve(const ServerConfig& cfg) {
       return httplib::Server::HandlerResponse::Handled;
     }
     if (req.has_header("Transfer-Encoding") && req.has_header("Content-Length")) close_after_answer(req, res);
+    // httplib 0.11 served a Range header on any method and status (a POST
+    // with one got a slice of its refined mesh, 206). The Request is a
+    // non-const local of httplib's, handed to us as const.
+    take_deferred_range(const_cast<httplib::Request&>(req));
     // A request with neither a Content-Length nor a Transfer-Encoding has no
     // body (RFC 9112 §6.3), but httplib 0.11 reads one until the connection
     // closes for POST, PUT, PATCH and DELETE: `curl -X POST` of an upload
@@ -661,7 +730,6 @@ int serve(const ServerConfig& cfg) {
     }
     if (!t_routed) {
       if (res.status == 414) return send_error(res, 414, "uri_too_long", "the request line is over 8,192 bytes");
-      if (res.status == 416) return send_error(res, 416, "bad_range", "the Range header could not be parsed");
       if (res.status == 400) {
         // httplib refuses a request line whose method or version it does not
         // know as malformed; RFC 9110 §15.6.2 and §15.6.6 name them.
@@ -835,8 +903,15 @@ int serve(const ServerConfig& cfg) {
       send_error(res, 413, "too_large", "the request needs more memory than the server has");
     }
   };
+  // A GET handler whose answer a Range header may slice.
+  auto ranged = [](auto handler) {
+    return [handler](const httplib::Request& req, httplib::Response& res) {
+      handler(req, res);
+      fit_ranges(const_cast<httplib::Request&>(req), res);
+    };
+  };
   auto wrap = [&](auto handler) {
-    return [&, handler](const httplib::Request& req, httplib::Response& res) { guard(req, res, [&] { handler(req, res); }); };
+    return ranged([&, handler](const httplib::Request& req, httplib::Response& res) { guard(req, res, [&] { handler(req, res); }); });
   };
   // For a POST whose body the handler reads itself (read_upload). A body
   // the handler did not read (a missing API key) is read and dropped after
@@ -933,16 +1008,16 @@ int serve(const ServerConfig& cfg) {
     if (!local && !stored) throw HttpError{404, "job_not_found", "no job with that id (it may have expired)"};
     res.set_content(json_text(json{{"id", id}, {"deleted", true}}), "application/json");
   }));
-  svr.Get("/healthz", [](const httplib::Request&, httplib::Response& res) {
+  svr.Get("/healthz", ranged([](const httplib::Request&, httplib::Response& res) {
     res.set_content(R"({"status":"ok"})", "application/json");
-  });
-  svr.Get("/readyz", [&](const httplib::Request&, httplib::Response& res) {
+  }));
+  svr.Get("/readyz", ranged([&](const httplib::Request&, httplib::Response& res) {
     if (draining) send_error(res, 503, "draining", "the server is shutting down");
     else res.set_content(R"({"status":"ready"})", "application/json");
-  });
-  svr.Get("/metrics", [&](const httplib::Request&, httplib::Response& res) {
+  }));
+  svr.Get("/metrics", ranged([&](const httplib::Request&, httplib::Response& res) {
     res.set_content(metrics.text(queue), "text/plain; version=0.0.4");
-  });
+  }));
   svr.Get("/v1/openapi.yaml", wrap([](const httplib::Request&, httplib::Response& res) {
     res.set_content(kOpenApiYaml, "application/yaml");
   }));
@@ -981,14 +1056,6 @@ int serve(const ServerConfig& cfg) {
                cfg.host, port, workers, resolve_threads(limits.lone_job_threads), limits.memory_limit >> 20,
                cfg.trim_delay_ms);
   if (cfg.on_listening) cfg.on_listening(port);
-  // httplib parses a Range header with a function-local static regex, built
-  // by the first request that has one. Built here, before any connection
-  // thread exists, it is never built on one thread and read on another: the
-  // library is not instrumented, so ThreadSanitizer cannot see the static's
-  // guard and reported a race (measured, in the test that sends Range
-  // headers on several connections: 2 runs in 15 without this, none in 30).
-  httplib::Ranges warm;
-  httplib::detail::parse_range_header("bytes=0-0", warm);
   std::thread http([&] { svr.listen_after_bind(); });
 
   int sig = 0;
