@@ -210,12 +210,13 @@ bool is_upload(const httplib::Request& req) {
 // A Range header the connection's stream deferred (kDeferredRange) gets its
 // name back, and the request the ranges it asks for, when it is a GET and
 // there is one such header that parses as bytes ranges. Any other is
-// dropped (httplib answers a file of the web page 206 whenever the request
-// has a Range header), and so ignored (RFC 9110 §14.2: Range is defined for GET alone, a unit the server
-// does not know must be ignored, and a malformed one may be). httplib
-// answered the malformed ones 416 itself, and honoured the others on any
-// method and status. Several ranges are taken on the API's routes alone,
-// which fit_ranges checks: the web page's files are sliced by httplib.
+// dropped, and so ignored (RFC 9110 §14.2: Range is defined for GET alone,
+// a unit the server does not know must be ignored, and a malformed one may
+// be); httplib answered the malformed ones 416 itself, honoured the others
+// on any method and status, and answers a file of the web page 206 whenever
+// the request has a Range header. Several ranges are taken on the API's
+// routes alone, which fit_ranges checks: the web page's files are sliced by
+// httplib.
 void take_deferred_range(httplib::Request& req) {
   std::vector<std::string> values;
   const auto [first, last] = req.headers.equal_range(kDeferredRange);
