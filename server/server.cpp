@@ -214,9 +214,7 @@ bool is_upload(const httplib::Request& req) {
 // a unit the server does not know must be ignored, and a malformed one may
 // be); httplib answered the malformed ones 416 itself, honoured the others
 // on any method and status, and answers a file of the web page 206 whenever
-// the request has a Range header. Several ranges are taken on the API's
-// routes alone, which fit_ranges checks: the web page's files are sliced by
-// httplib.
+// the request has a Range header.
 void take_deferred_range(httplib::Request& req) {
   std::vector<std::string> values;
   const auto [first, last] = req.headers.equal_range(kDeferredRange);
@@ -229,7 +227,6 @@ void take_deferred_range(httplib::Request& req) {
   // httplib's parser takes "bytes=-" as a range (the whole); it is none.
   for (const auto& [from, to] : ranges)
     if (from < 0 && to < 0) return;
-  if (ranges.size() > 1 && route_of(req.path) == "other") return;
   req.ranges = std::move(ranges);
   req.headers.emplace("Range", values.front());
 }
@@ -1033,6 +1030,13 @@ int serve(const ServerConfig& cfg) {
       if (access((dir + "/web/index.html").c_str(), R_OK) == 0) web_root = dir + "/web";
     }
   }
+  // A file of the web page is fitted to its ranges as the API's answers are
+  // (httplib has set 206 already whenever the request has a Range header;
+  // -1 lets it choose between 200 and 206 once they are fitted).
+  svr.set_file_request_handler([](const httplib::Request& req, httplib::Response& res) {
+    res.status = -1;
+    fit_ranges(const_cast<httplib::Request&>(req), res);
+  });
   if (!web_root.empty() && !svr.set_mount_point("/", web_root)) {
     log_event(spdlog::level::err, {{"event", "web_root_unusable"}, {"path", web_root}},
               "cannot serve the web page from " + web_root);
