@@ -109,7 +109,7 @@ class GuardedStream final : public httplib::Stream {
     if (hit_ != LimitHit::kNone || size == 0) return -1;
     if (space_due_) {  // see defer_range
       space_due_ = false;
-      *ptr = ' ';
+      *ptr = kDeferredRange[kRangeName];
       return 1;
     }
     if (budget_ == 0) return stop(phase_ == Phase::kHead ? LimitHit::kHeadTooLarge : LimitHit::kBodyTooLarge, ptr);
@@ -117,16 +117,17 @@ class GuardedStream final : public httplib::Stream {
     // The head goes through the buffer, where defer_range can look at it
     // before httplib does (httplib reads it a byte at a time).
     const bool in_head = line_ != kHeadEnded;
+    const bool direct = size >= sizeof buf_ && !in_head;  // straight into |ptr|
     if (off_ == len_) {
       LimitHit why = LimitHit::kNone;
       const int64_t ms = wait_ms(&why);
       if (ms <= 0 || !wait_for(sock_, POLLIN, ms)) return stop(why != LimitHit::kNone ? why : timeout_kind(), ptr);
       ssize_t n;
       do {
-        n = size >= sizeof buf_ && !in_head ? ::recv(sock_, ptr, size, 0) : ::recv(sock_, buf_, sizeof buf_, 0);
+        n = direct ? ::recv(sock_, ptr, size, 0) : ::recv(sock_, buf_, sizeof buf_, 0);
       } while (n < 0 && errno == EINTR);
       if (n <= 0) return n;
-      if (size >= sizeof buf_ && !in_head) return took(ptr, size_t(n));
+      if (direct) return took(ptr, size_t(n));
       off_ = 0;
       len_ = size_t(n);
     }
@@ -186,13 +187,15 @@ class GuardedStream final : public httplib::Stream {
   size_t defer_range(const char* p, size_t n) {
     for (size_t i = 0; i < n; ++i) {
       const char c = p[i];
-      if (line_ > 0 && line_pos_ == 5 && range_name_ && c == ':') {
+      if (line_ > 0 && line_pos_ == kRangeName && range_name_ && c == ':') {
         if (i > 0) return i;
         space_due_ = true;
-        ++line_pos_;  // the space is the line's sixth byte
+        ++line_pos_;  // the space is the line's next byte
         return 0;
       }
-      if (line_pos_ < 5) range_name_ = range_name_ && std::tolower(static_cast<unsigned char>(c)) == "range"[line_pos_];
+      if (line_pos_ < kRangeName)
+        range_name_ = range_name_ && std::tolower(static_cast<unsigned char>(c)) ==
+                                         std::tolower(static_cast<unsigned char>(kDeferredRange[line_pos_]));
       if (c == '\n') {
         // The head ends with its first line of CR LF alone (a line of LF
         // alone httplib skips, reading on).
@@ -279,6 +282,8 @@ class GuardedStream final : public httplib::Stream {
   // kHeadEnded past the head), the bytes of that line handed so far, the
   // last of them, whether they begin "range", and whether a space is due.
   static constexpr size_t kHeadEnded = ~size_t(0);
+  // kDeferredRange is the name "Range" and the byte added after it.
+  static constexpr size_t kRangeName = sizeof kDeferredRange - 2;
   size_t line_ = 0, line_pos_ = 0;
   char last_byte_ = 0;
   bool range_name_ = true;

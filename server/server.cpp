@@ -252,6 +252,7 @@ void fit_ranges(httplib::Request& req, httplib::Response& res) {
   }
   const auto size = static_cast<ssize_t>(res.body.size());
   httplib::Ranges fitted;
+  ssize_t asked = 0;
   for (auto [from, to] : req.ranges) {
     if (from < 0) {  // a suffix: the last |to| bytes
       from = std::max<ssize_t>(0, size - to);
@@ -259,10 +260,10 @@ void fit_ranges(httplib::Request& req, httplib::Response& res) {
     } else {
       to = to < 0 ? size - 1 : std::min(to, size - 1);
     }
-    if (from < size && from <= to) fitted.emplace_back(from, to);
+    if (from >= size || from > to) continue;
+    fitted.emplace_back(from, to);
+    asked += to - from + 1;
   }
-  ssize_t asked = 0;
-  for (const auto& [from, to] : fitted) asked += to - from + 1;
   if (asked > size || fitted.size() > kMaxRanges) {
     req.ranges.clear();
     return;
