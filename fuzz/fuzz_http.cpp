@@ -191,6 +191,24 @@ extern "C" int LLVMFuzzerInitialize(int*, char***) {
   if (const char* key = std::getenv("FUZZ_HTTP_API_KEY")) cfg.api_key = key;
   if (const char* dir = std::getenv("FUZZ_HTTP_JOB_DIR")) cfg.job_dir = dir;
   if (const char* format = std::getenv("FUZZ_HTTP_LOG_FORMAT")) cfg.log_format = format;
+  // A third: limits an input reaches with a few bytes (a 96 MiB budget, so
+  // that work gets 72 MiB and a job's estimate, 64 MiB and more, turns
+  // uploads of a few hundred KiB away; a queue of one; 4,000 output
+  // triangles; results over 32 KiB not kept; jobs kept 1 s), a job alone
+  // refined on two threads (the pool's loops under the fuzzer), freed
+  // memory given back after an idle second (the server's default path, not
+  // after every job), and the web page's files when a directory is given.
+  if (std::getenv("FUZZ_HTTP_TIGHT")) {
+    cfg.queue = 1;
+    cfg.memory_limit = int64_t(96) << 20;
+    cfg.max_output_triangles = 4000;
+    cfg.result_bytes_cap = 32 << 10;
+    cfg.job_ttl_s = 1;
+    cfg.request_timeout_s = 5;
+    cfg.lone_job_threads = 2;
+    cfg.trim_delay_ms = 1000;
+  }
+  if (const char* web = std::getenv("FUZZ_HTTP_WEB_ROOT")) cfg.web_root = web;
   cfg.on_listening = [](int p) { port = p; };
   std::thread([cfg] { std::_Exit(iteas::serve(cfg) == 0 ? 0 : 3); }).detach();
   for (int i = 0; i < 1000 && port == 0; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
