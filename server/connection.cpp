@@ -303,10 +303,20 @@ GuardedServer::GuardedServer(const ConnectionLimits& limits) : limits_(limits) {
   // What httplib writes in each response's Keep-Alive header.
   set_keep_alive_timeout(limits.keep_alive_timeout_s);
   set_keep_alive_max_count(size_t(std::max(1, limits.keep_alive_max)));
-  set_socket_options([](socket_t sock) {
+  set_socket_options([this](socket_t sock) {
     const int yes = 1;
     ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+    last_socket_ = sock;
   });
+}
+
+bool GuardedServer::raise_listen_backlog(int backlog) {
+  int listening = 0;
+  socklen_t size = sizeof listening;
+  if (last_socket_ == INVALID_SOCKET || ::getsockopt(last_socket_, SOL_SOCKET, SO_ACCEPTCONN, &listening, &size) != 0 ||
+      !listening)
+    return false;
+  return ::listen(last_socket_, backlog) == 0;
 }
 
 bool GuardedServer::process_and_close_socket(socket_t sock) {

@@ -50,9 +50,23 @@ class GuardedServer : public httplib::Server {
   // the kernel split the connections between the two.
   explicit GuardedServer(const ConnectionLimits& limits);
 
+  // httplib 0.11 listens with a backlog of 5 (CPPHTTPLIB_LISTEN_BACKLOG,
+  // compiled into Debian's library). A burst of connections then overflows
+  // the kernel's accept queue: SYNs are dropped (the client waits 1 s to
+  // send its again) or answered with cookies, and some connections are reset
+  // on their first data (200 connections at once: 32-33 reset in two rounds
+  // of three, up to 123 waiting over 0.9 s). After bind_to_port, this listens
+  // again on the bound socket with |backlog| (the kernel caps it at
+  // net.core.somaxconn). False when there is no bound listening socket.
+  bool raise_listen_backlog(int backlog);
+
  private:
   bool process_and_close_socket(socket_t sock) override;
   ConnectionLimits limits_;
+  // The last socket httplib's socket options were applied to: the one it
+  // bound, once bind_to_port has succeeded (it tries its addresses in turn,
+  // closing each that fails).
+  socket_t last_socket_ = INVALID_SOCKET;
 };
 
 // For handlers, on the connection's thread (no-ops elsewhere, as in tests

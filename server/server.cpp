@@ -385,6 +385,9 @@ constexpr size_t kDrainBytes = size_t(16) << 20;
 // What a request may send as its body, off the wire, on a route that takes
 // no upload (httplib reads it whole into memory).
 constexpr size_t kOtherBodyBytes = size_t(1) << 20;
+// Connections the kernel holds for the accept loop (Node and nginx take
+// 511; capped by net.core.somaxconn).
+constexpr int kListenBacklog = 1024;
 
 // Debian's cpp-httplib 0.11 insists on CRLF after the closing boundary,
 // which some clients (Node 18's fetch) leave out.
@@ -1057,6 +1060,12 @@ int serve(const ServerConfig& cfg) {
               "cannot listen on " + cfg.host + ":" + std::to_string(cfg.port));
     return 4;
   }
+  // A burst of connections waits in the kernel's accept queue instead of
+  // being dropped or reset (httplib listens with a backlog of 5).
+  if (!svr.raise_listen_backlog(kListenBacklog))
+    log_event(spdlog::level::warn, {{"event", "listen_backlog"}, {"backlog", kListenBacklog}},
+              "could not raise the listen backlog to " + std::to_string(kListenBacklog) +
+                  "; bursts of connections may be dropped");
   logger->info(json_log ? R"("event":"listening","host":"{}","port":{},"workers":{},"lone_job_threads":{},"memory_limit_mib":{},"trim_delay_ms":{})"
                         : "listening on {}:{} with {} workers (at most {} threads a job), memory limit {} MiB, trim delay {} ms",
                cfg.host, port, workers, resolve_threads(limits.lone_job_threads), limits.memory_limit >> 20,
