@@ -193,7 +193,7 @@ extern "C" int LLVMFuzzerInitialize(int*, char***) {
   if (const char* format = std::getenv("FUZZ_HTTP_LOG_FORMAT")) cfg.log_format = format;
   // A third: limits an input reaches with a few bytes (a 96 MiB budget, so
   // that work gets 72 MiB and a job's estimate, 64 MiB and more, turns
-  // uploads of a few hundred KiB away; a queue of one; 4,000 output
+  // plain-format uploads over about 180 KB away; a queue of one; 4,000 output
   // triangles; results over 32 KiB not kept; jobs kept 1 s), a job alone
   // refined on two threads (the pool's loops under the fuzzer), freed
   // memory given back after an idle second (the server's default path, not

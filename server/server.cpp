@@ -1060,8 +1060,6 @@ int serve(const ServerConfig& cfg) {
               "cannot listen on " + cfg.host + ":" + std::to_string(cfg.port));
     return 4;
   }
-  // A burst of connections waits in the kernel's accept queue instead of
-  // being dropped or reset (httplib listens with a backlog of 5).
   if (!svr.raise_listen_backlog(kListenBacklog))
     log_event(spdlog::level::warn, {{"event", "listen_backlog"}, {"backlog", kListenBacklog}},
               "could not raise the listen backlog to " + std::to_string(kListenBacklog) +

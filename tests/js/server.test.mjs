@@ -739,23 +739,17 @@ maybe('backpressure')('a burst of 300 connections at once is answered on every o
   const burst = Math.min(300, Math.floor(somaxconn / 2));
   const s = await startServer();
   try {
-    const one = () => new Promise((resolve) => {
-      const sock = net.connect(s.port, '127.0.0.1');
-      let got = '';
-      sock.on('connect', () => sock.write('GET /healthz HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n'));
-      sock.on('data', (d) => { got += d; });
-      sock.on('error', (e) => resolve(e.code || e.message));
-      sock.on('close', () => resolve(got.startsWith('HTTP/1.1 200') ? 'ok' : `answer ${JSON.stringify(got.slice(0, 40))}`));
-    });
+    const one = async () => {
+      const { got } = await converse(s.port, 'GET /healthz HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n');
+      return got.startsWith('HTTP/1.1 200') ? 'ok' : got ? `answer ${JSON.stringify(got.slice(0, 40))}` : 'no answer (reset)';
+    };
     for (let round = 0; round < 3; round++) {
       const outcomes = await Promise.all(Array.from({ length: burst }, one));
       const tally = {};
       for (const o of outcomes) tally[o] = (tally[o] || 0) + 1;
       assert.deepEqual(tally, { ok: burst }, `round ${round}: ${JSON.stringify(tally)}`);
     }
-  } finally {
-    await stopServer(s);
-  }
+  } finally { assert.equal(await stopServer(s), 0); }
 });
 
 maybe('backpressure')('a full queue answers 429 with Retry-After; SIGTERM drains and exits 0', async () => {
