@@ -31,7 +31,7 @@ ninja -C build-tsan iteas io_test refine_test
 # modes), the spatial sort in parts (a generated mesh of 81,920 triangles),
 # several meshes refined and several Draco payloads encoded at once. The
 # corpus's meshes of that size are left to the release stage (with them this
-# step took 254 s instead of 22).
+# step took 254 s instead of 22–24).
 ITEAS_CORPUS=/nonexistent ITEAS_TEST_MAX_FACES=4000 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" \
   build-tsan/tests/refine_test --gtest_filter='*SameOutputForOneAndTwoThreads*:*ReportedQuality*:*SpatialOrderIsTheSameOnAnyThreads*' --gtest_brief=1
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" ITEAS_CORPUS=/nonexistent \
