@@ -20,9 +20,11 @@ export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktra
 ctest --test-dir build-asan --output-on-failure -j 2 -R 'corner_table_test|io_test|fuzz_replay'
 build-asan/tests/refine_test --gtest_filter='*AdaptiveWithEverything*:*Planar*:*Cancellation*:*Budget*:*SmallestAngle*:*RingBlock*' --gtest_brief=1
 ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_JS_ONLY=broken node --test tests/js/corpus.test.mjs
-# The server's integration tests against the ASan binary (the shipped meshes).
+# The server's integration tests against the ASan binary (the shipped meshes):
+# every group but trim, threads and bounds (which measure the allocator, the
+# cores and RSS) and openapi (a linter).
 ITEAS_BIN="$PWD/build-asan/iteas" ITEAS_SOURCE_DIR="$PWD" ITEAS_CORPUS=/nonexistent \
-  ITEAS_JS_ONLY=errors,auth,backpressure node --test tests/js/server.test.mjs
+  ITEAS_JS_ONLY=errors,auth,backpressure,api,replicas,slowread node --test tests/js/server.test.mjs
 
 echo "[test] ThreadSanitizer build: the core on two threads, the job's parallel steps, the server tests"
 cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=Tsan >/dev/null
@@ -36,6 +38,8 @@ ITEAS_CORPUS=/nonexistent ITEAS_TEST_MAX_FACES=4000 TSAN_OPTIONS="halt_on_error=
   build-tsan/tests/refine_test --gtest_filter='*SameOutputForOneAndTwoThreads*:*ReportedQuality*:*SpatialOrderIsTheSameOnAnyThreads*' --gtest_brief=1
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" ITEAS_CORPUS=/nonexistent \
   build-tsan/tests/io_test --gtest_filter='Io.SeveralMeshes*:Io.DracoPrim*' --gtest_brief=1
+# The server's groups but replicas (its level-5 jobs outlast the test's waits
+# under TSan), bounds and openapi.
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp" ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
-  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure,trim node --test tests/js/server.test.mjs
+  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure,trim,threads,slowread node --test tests/js/server.test.mjs
 echo "[test] all passed"

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <iterator>
 #include <limits>
 
 #include "core/mesh.h"
@@ -175,13 +176,21 @@ void JobQueue::expire_locked() {
   std::vector<std::pair<std::chrono::steady_clock::time_point, std::string>> finished;
   size_t bytes = 0;
   for (auto it = jobs_.begin(); it != jobs_.end();) {
-    std::lock_guard<std::mutex> jl(it->second->mu);
-    if (it->second->finished_state()) {
-      if (now - it->second->finished > limits_.ttl) { it = jobs_.erase(it); continue; }
-      finished.emplace_back(it->second->finished, it->first);
-      bytes += it->second->result.size();
+    bool expired = false;
+    {
+      Job& job = *it->second;
+      std::lock_guard<std::mutex> jl(job.mu);
+      if (job.finished_state()) {
+        expired = now - job.finished > limits_.ttl;
+        if (!expired) {
+          finished.emplace_back(job.finished, it->first);
+          bytes += job.result.size();
+        }
+      }
     }
-    ++it;
+    // Erased only once its lock is released: the map may hold the job's last
+    // reference, and the lock's mutex is a member of the job.
+    it = expired ? jobs_.erase(it) : std::next(it);
   }
   std::sort(finished.begin(), finished.end());
   for (const auto& [t, id] : finished) {
