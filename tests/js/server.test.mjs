@@ -102,7 +102,7 @@ maybe('api')('a finished job is kept for the job TTL, then answers 404, and the 
   // The sweep that ends a job erased it from the job table while holding the
   // job's own lock, whose mutex the erase freed: ThreadSanitizer reported the
   // unlock as a heap use after free (the server then exits 66).
-  const s = await startServer(['--workers', '1', '--job-ttl', '1']);
+  const s = await startServer(['--workers', '1', '--job-ttl', '2']);
   try {
     const body = fs.readFileSync(path.join(DATA, 'eight.off'));
     for (let round = 0; round < 3; round++) {
@@ -120,9 +120,11 @@ maybe('api')('a finished job is kept for the job TTL, then answers 404, and the 
           await sleep(20);
         }
         assert.equal(st.status, 'done');
-        assert.equal((await fetch(`${s.url}${loc}/result`)).status, 200);
+        const result = await fetch(`${s.url}${loc}/result`);
+        assert.equal(result.status, 200);
+        await result.arrayBuffer();
       }
-      await sleep(1300);  // past the TTL of every job of this round
+      await sleep(2300);  // past the TTL of every job of this round
       for (const loc of ids) {
         await expectError(await fetch(s.url + loc), 404, 'job_not_found');
         await expectError(await fetch(`${s.url}${loc}/result`), 404, 'job_not_found');
