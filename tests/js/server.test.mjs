@@ -50,6 +50,17 @@ let server;
 before(async () => { server = await startServer(['--workers', '2', '--queue', '64', '--max-upload-bytes', String(8 << 20), '--read-timeout', '2']); });
 after(async () => { if (server) await stopServer(server); killLeftoverServers(); });
 
+const jobStatus = async (s, loc) => (await (await fetch(s.url + loc)).json()).status;
+// Polls a job's status while it is |status| (at most 2 minutes); returns the next one.
+async function statusAfter(s, loc, status) {
+  let now = await jobStatus(s, loc);
+  for (let i = 0; i < 6000 && now === status; i++) {
+    await sleep(20);
+    now = await jobStatus(s, loc);
+  }
+  return now;
+}
+
 function meshesToSend() {
   const files = listFiles(DATA);
   if (HAVE_CORPUS) for (const s of ['gltf', 'gltf-draco', 'drc', 'classic', 'classic-converted']) files.push(...listFiles(path.join(CORPUS, s)));
@@ -113,13 +124,9 @@ maybe('api')('a finished job is kept for the job TTL, then answers 404, and the 
         ids.push(created.headers.get('location'));
       }
       for (const loc of ids) {
-        let st;
-        for (let k = 0; k < 600; k++) {
-          st = await (await fetch(s.url + loc)).json();
-          if (st.status !== 'queued' && st.status !== 'running') break;
-          await sleep(20);
-        }
-        assert.equal(st.status, 'done');
+        let state = await statusAfter(s, loc, 'queued');
+        if (state === 'running') state = await statusAfter(s, loc, 'running');
+        assert.equal(state, 'done');
         const result = await fetch(`${s.url}${loc}/result`);
         assert.equal(result.status, 200);
         await result.arrayBuffer();
@@ -977,16 +984,6 @@ maybe('openapi')('the OpenAPI document passes a standard linter and is served', 
 
 // --- freed memory and threads: what /metrics and a job's status say ---------------
 const metricsText = async (s) => (await fetch(`${s.url}/metrics`)).text();
-const jobStatus = async (s, loc) => (await (await fetch(s.url + loc)).json()).status;
-// Polls a job's status while it is |status| (at most 2 minutes); returns the next one.
-async function statusAfter(s, loc, status) {
-  let now = await jobStatus(s, loc);
-  for (let i = 0; i < 6000 && now === status; i++) {
-    await sleep(20);
-    now = await jobStatus(s, loc);
-  }
-  return now;
-}
 
 async function trims(s) {
   const m = (await metricsText(s)).match(/^iteas_heap_trims_total (\d+)$/m);
