@@ -351,12 +351,11 @@ TEST(Refine, AffineInvariance) {
 
 // Issue 3, point 3: after 4 iteas levels the smallest triangle angle is at
 // least half the input's on every closed mesh (no sliver decay from repeated
-// closure: the sliver guard and the green promotion in the closure). Known
-// exceptions, measured and explained in the README ("Open work"): fandisk
-// (17.05° -> 5.69°), screwdriver (4.90° -> 1.35°), CesiumMilkTruck's second
-// mesh (15.0° -> 6.75°) and three of 2CylinderEngine's CAD meshes (inputs with
-// 0.2°-0.9° slivers), where greens born inside a merged pair's split are not
-// yet checked.
+// closure: the sliver guard and the green promotion in the closure). No
+// exceptions: the meshes that once fell under it (fandisk 17.05° -> 5.69°,
+// screwdriver 4.90° -> 1.35°, CAD meshes of 2CylinderEngine with 0.2°-0.9°
+// slivers) now keep half (README, "Open work and known limits", triangle
+// quality).
 TEST(Refine, FourIteasLevelsKeepHalfTheSmallestAngle) {
   int closed = 0;
   for (const Case& c : cases(30000)) {
