@@ -38,8 +38,9 @@ ITEAS_CORPUS=/nonexistent ITEAS_TEST_MAX_FACES=4000 TSAN_OPTIONS="halt_on_error=
   build-tsan/tests/refine_test --gtest_filter='*SameOutputForOneAndTwoThreads*:*ReportedQuality*:*SpatialOrderIsTheSameOnAnyThreads*' --gtest_brief=1
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1" ITEAS_CORPUS=/nonexistent \
   build-tsan/tests/io_test --gtest_filter='Io.SeveralMeshes*:Io.DracoPrim*' --gtest_brief=1
-# The server's groups but replicas (its level-5 jobs outlast the test's waits
-# under TSan), bounds and openapi.
+# The server's groups but bounds (its 3-million-triangle jobs) and openapi
+# (a linter); ITEAS_TEST_SANITIZER sizes the replicas' queued jobs for TSan.
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp" ITEAS_BIN="$PWD/build-tsan/iteas" ITEAS_SOURCE_DIR="$PWD" \
-  ITEAS_CORPUS=/nonexistent ITEAS_JS_ONLY=api,errors,auth,backpressure,trim,threads,slowread node --test tests/js/server.test.mjs
+  ITEAS_CORPUS=/nonexistent ITEAS_TEST_SANITIZER=thread ITEAS_JS_ONLY=api,errors,auth,backpressure,replicas,trim,threads,slowread \
+  node --test tests/js/server.test.mjs
 echo "[test] all passed"
