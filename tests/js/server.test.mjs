@@ -13,6 +13,9 @@ import { BIN, DATA, SOURCE_DIR, HAVE_CORPUS, CORPUS, tmp, listFiles, nastyMeshes
 // ITEAS_JS_ONLY=a,b runs only the tests named a or b.
 const only = (process.env.ITEAS_JS_ONLY || '').split(',').filter(Boolean);
 const maybe = (name) => (only.length && !only.includes(name) ? test.skip : test);
+// ITEAS_TEST_SANITIZER=thread: the binary runs under ThreadSanitizer, 7-9 times
+// slower, and the tests that need a job to outlast others size it down.
+const UNDER_TSAN = process.env.ITEAS_TEST_SANITIZER === 'thread';
 
 const ajv = new Ajv2020({ strict: false, allErrors: true });
 const statsSchema = JSON.parse(fs.readFileSync(path.join(SOURCE_DIR, 'proto/stats.schema.json'), 'utf8'));
@@ -887,7 +890,7 @@ maybe('replicas')('a job queued longer than the TTL stays in the shared store wh
   // Under ThreadSanitizer a job runs 7-9 times slower (bunny-npm through the
   // CLI: level 3 1.17 s against 0.16 s, level 4 4.58 s against 0.51 s), and
   // level 3 keeps the queue long enough there.
-  const level = process.env.ITEAS_TEST_SANITIZER === 'thread' ? 3 : 5;
+  const level = UNDER_TSAN ? 3 : 5;
   const dir = fs.mkdtempSync(path.join(tmp, 'jobs-ttl-'));
   const a = await startServer(['--workers', '1', '--lone-job-threads', '1', '--job-dir', dir, '--job-ttl', '1']);
   const b = await startServer(['--workers', '1', '--job-dir', dir, '--job-ttl', '1']);
@@ -1057,7 +1060,7 @@ maybe('threads')('a job gets the cores no other job holds or could take, and the
   // Under ThreadSanitizer (7-9 times slower, see the replicas' TTL test) level
   // 4's 940,544 triangles keep it running long enough: at level 5 the test
   // took 47 s there, at level 4 13 s.
-  const longLevels = process.env.ITEAS_TEST_SANITIZER === 'thread' ? 4 : 5;
+  const longLevels = UNDER_TSAN ? 4 : 5;
   const startLong = async (s) => {
     const r = await post(s, '/v1/jobs', `mode=uniform&levels=${longLevels}`);
     assert.equal(r.status, 202);
