@@ -1278,13 +1278,26 @@ TEST(Refine, ReportedQualityIsTheOutputs) {
 
 TEST(Refine, CancellationIsHonoured) {
   const Mesh s = test::icosphere(3);
-  std::atomic<bool> cancel{true};
-  RefineHooks h;
-  h.cancel = &cancel;
-  Mesh m = s;
-  RefineStats st;
-  EXPECT_EQ(refine_mesh(m, opts(Mode::kUniform, 3), h, &st), RefineResult::kCancelled);
-  EXPECT_EQ(st.stopped_by, "cancelled");
+  for (int threads : {1, 2}) {
+    SCOPED_TRACE(threads);
+    std::atomic<bool> cancel{true};
+    RefineHooks h;
+    h.cancel = &cancel;
+    h.choose_threads = false;
+    Mesh m = s;
+    RefineStats st, done;
+    EXPECT_EQ(refine_mesh(m, opts(Mode::kUniform, 3, threads), h, &st), RefineResult::kCancelled);
+    EXPECT_EQ(st.stopped_by, "cancelled");
+    EXPECT_TRUE(m.positions == s.positions);
+    // The input's statistics are still reported (on two threads they are
+    // otherwise taken beside the first level, which did not run).
+    refined(s, opts(Mode::kUniform, 3, threads), &done);
+    EXPECT_GT(st.before.edges, 0);
+    EXPECT_EQ(st.before.edges, done.before.edges);
+    EXPECT_EQ(st.before.mean, done.before.mean);
+    EXPECT_EQ(st.before.above, done.before.above);
+    EXPECT_EQ(st.threshold, done.threshold);
+  }
 }
 
 }  // namespace
