@@ -403,4 +403,36 @@ void parallel_for(int64_t n, int threads, const Body& body, int64_t grain) {
     if (e) std::rethrow_exception(e);
 }
 
+bool BesideWork::begin() {
+  int idle = 0;
+  return state_.compare_exchange_strong(idle, 1, std::memory_order_acq_rel);
+}
+
+void BesideWork::offer() {
+  if (!begin()) return;
+  try {
+    work_();
+  } catch (...) {
+    error_ = std::current_exception();
+  }
+  state_.store(2, std::memory_order_release);
+}
+
+void BesideWork::finish() {
+  if (begin()) {
+    // Done (or failed) here: nothing to wait for afterwards.
+    struct Done {
+      std::atomic<int>& state;
+      ~Done() { state.store(2, std::memory_order_release); }
+    } done{state_};
+    work_();
+    return;
+  }
+  for (int spins = 0; state_.load(std::memory_order_acquire) != 2; ++spins) {
+    if (spins < 4096) cpu_relax();
+    else std::this_thread::yield();
+  }
+  if (error_) std::rethrow_exception(std::exchange(error_, nullptr));
+}
+
 }  // namespace iteas

@@ -7,9 +7,12 @@
 #pragma once
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
+#include <exception>
 #include <functional>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 namespace iteas {
@@ -56,6 +59,27 @@ int threads_for_round_trip(int64_t faces, int threads, int64_t round_trip_ns, bo
 // True while the calling thread runs pieces of a parallel_for of more than one
 // thread (a loop started there finds the pool busy and starts threads of its own).
 bool inside_parallel_for();
+
+// Work that another thread may take while this one goes on with its own,
+// for as long as what the work reads stays as it is: offer() (on the other
+// thread, e.g. as a piece of a parallel_for_chunks) does it unless it has
+// begun; finish() (on the owner's thread, before what it reads changes)
+// does it there if no thread has begun it, else waits until it is done and
+// rethrows what it threw there. Done once, whoever does it.
+class BesideWork {
+ public:
+  explicit BesideWork(std::function<void()> work) : work_(std::move(work)) {}
+  BesideWork(const BesideWork&) = delete;
+  BesideWork& operator=(const BesideWork&) = delete;
+  void offer();
+  void finish();
+
+ private:
+  bool begin();
+  std::function<void()> work_;
+  std::atomic<int> state_{0};  // 0 idle, 1 begun, 2 done
+  std::exception_ptr error_;
+};
 
 }  // namespace iteas
 

@@ -191,7 +191,10 @@ struct State {
   bool incremental_table = true;  // RefineHooks::incremental_table
   bool level_rings_on = true;     // RefineHooks::level_rings
   const std::function<void(const float*, int64_t)>* deviations_seen = nullptr;  // RefineHooks::deviations
-  // Bytes held beside the level by work on another thread (first_level_beside_input).
+  // Work another thread does beside a uniform level, reading the level's
+  // corners and opposites (first_level_beside_input): uniform_level calls
+  // finish() before it replaces them. |beside_bytes|: what that work holds.
+  BesideWork* beside = nullptr;
   int64_t beside_bytes = 0;
 };
 
@@ -544,6 +547,8 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
       if (c >= 0) vc[v] = kept_child_corner(c);
     }
   });
+  // The parent's corners and opposites are replaced below.
+  if (s.beside) s.beside->finish();
   note_peak(s, m, vbytes(evert) + vbytes(ewedge) + vbytes(cv) + vbytes(cw) + vbytes(fg));
   Array<int32_t>().swap(evert);
   Array<int32_t>().swap(ewedge);
@@ -606,37 +611,52 @@ InputAngles input_angles(const Mesh& m, const CornerTable& ct, double crease, in
 // On two threads a small level gained little or nothing from the second
 // thread, which then waited on the lines the first had written (bunny-npm
 // level 1: 0.80-1.11x one thread's speed), while the statistics, on lines
-// of their own, are work of about the same size. The statistics read a copy
-// of the input's points, corners and opposites: the level appends points
-// (the array's size changes) and replaces the corners and opposites when it
-// ends. With one thread, or the other not free, both run here in turn.
-InputAngles first_level_beside_input(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool connectivity,
-                                     bool more_levels, bool split_summary) {
-  Mesh input;
-  input.positions.assign(m.positions.begin(), m.positions.end());
-  input.corner_vertex = m.corner_vertex;
-  CornerTable table;
-  table.opposites() = s.ct.opposites();
-  s.beside_bytes = vbytes(input.positions) + vbytes(input.corner_vertex) + vbytes(table.opposites()) +
-                   int64_t(sizeof(float)) * int64_t(m.corner_vertex.size());  // their θ
-  InputAngles r;
+// of their own, are work of about the same size. The statistics read the
+// input's opposites where they are, until the level replaces them (it waits
+// for them there), and a copy of its points and corners, made on their
+// thread from where they are (the level appends points, whose array's size
+// then changes, but never moves them: |points_kept| says the array has room
+// for the level's points). With one thread, or the other not free, both run
+// here in turn.
+InputAngles first_level_beside_input(State& s, Mesh& m, LevelStats& ls, bool connectivity, bool more_levels,
+                                     bool split_summary, size_t points_kept) {
+  if (m.positions.capacity() < points_kept) throw std::logic_error("first_level_beside_input: no room for the points");
+  InputAngles out;
+  const float* const points = m.positions.data();
+  const size_t n_points = m.positions.size();
+  const int32_t* const corners = m.corner_vertex.data();
+  const size_t n_corners = m.corner_vertex.size();
+  const CornerTable& table = s.ct;
+  BesideWork work([&] {
+    Mesh input;
+    input.positions.assign(points, points + n_points);
+    input.corner_vertex.assign(corners, corners + n_corners);
+    out = input_angles(input, table, 0, 1);  // (no creases: see refine_mesh)
+  });
+  // The copy and its θ.
+  s.beside_bytes = int64_t(sizeof(float)) * int64_t(n_points + 2 * n_corners);
   const int threads = s.threads;
   s.threads = 1;
+  s.beside = &work;
+  auto restore = [&] {
+    s.threads = threads;
+    s.beside = nullptr;
+    s.beside_bytes = 0;
+  };
   try {
     parallel_for_chunks(2, threads, [&](int64_t b, int64_t e) {
       for (int64_t k = b; k < e; ++k) {
-        if (k == 0) uniform_level(s, m, ls, derive_classes, connectivity, more_levels, split_summary);
-        else r = input_angles(input, table, 0, 1);  // (no creases: see refine_mesh)
+        if (k == 0) uniform_level(s, m, ls, true, connectivity, more_levels, split_summary);
+        else work.offer();
       }
     });
+    work.finish();  // done already (the level waited for it): its error, if any
   } catch (...) {
-    s.threads = threads;
-    s.beside_bytes = 0;
+    restore();
     throw;
   }
-  s.threads = threads;
-  s.beside_bytes = 0;
-  return r;
+  restore();
+  return out;
 }
 
 // ---------------------------------------------------------------------------
@@ -1935,10 +1955,14 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
   // (first_level_beside_input), when the level runs. A large first level
   // gains from both threads itself (bun_zipper, 69,451 faces, level 1 with
   // statistics: 8.4-8.5 ms with both on each, 8.6-9.2 ms side by side).
+  // Only where the points' array has room for the level's new points
+  // (reserve_uniform_vertices: one per edge), so that it never moves.
   const bool uniform_path = !adaptive && !hooks.force_adaptive_path;
+  const size_t points_kept =
+      3 * size_t(int64_t(m.num_vertices()) + (3 * int64_t(m.num_faces()) + stats.topology.boundary_edges) / 2);
   bool angles_beside = statistics && uniform_path && crease <= 0 && s.threads > 1 && o.levels >= 1 &&
                        m.num_faces() > 0 && m.num_faces() < kSmallStepFaces &&
-                       int64_t(m.num_faces()) * 4 <= o.max_triangles;
+                       int64_t(m.num_faces()) * 4 <= o.max_triangles && m.positions.capacity() >= points_kept;
   if (statistics && !angles_beside) {
     current_angles(s, m);  // nothing carried into the input
     // The input's summary once: with the mean for T (uniform jobs, and the
@@ -1994,7 +2018,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
       if (use_uniform_path && angles_beside) {
-        const InputAngles in = first_level_beside_input(s, m, ls, true, level < o.levels, level < o.levels, statistics);
+        const InputAngles in =
+            first_level_beside_input(s, m, ls, level < o.levels, level < o.levels, statistics, points_kept);
         stats.before = in.before;
         T_input = stats.threshold = ls.threshold = in.threshold;
         angles_beside = false;

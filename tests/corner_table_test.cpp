@@ -1218,6 +1218,52 @@ TEST(Parallel, WorkersWakingLateNeverTouchAFinishedLoop) {
 // would: a filter of random values, for several thread counts and chunk
 // sizes (one thread: one chunk), with a single count and with a struct of
 // two counts whose fill also gets its chunk's end.
+// Work beside a loop (BesideWork) is done once: by the thread that offers
+// to do it, with the owner's finish() waiting until it is done, or by the
+// owner when no thread has begun it; what it throws reaches the owner.
+TEST(Parallel, WorkBesideIsDoneOnceAndWaitedFor) {
+  {  // Nobody offered: the owner does it, and a late offer does nothing.
+    int runs = 0;
+    std::thread::id by;
+    iteas::BesideWork w([&] { ++runs; by = std::this_thread::get_id(); });
+    w.finish();
+    EXPECT_EQ(runs, 1);
+    EXPECT_EQ(by, std::this_thread::get_id());
+    std::thread([&] { w.offer(); }).join();
+    w.finish();
+    EXPECT_EQ(runs, 1);
+  }
+  {  // Begun on another thread: finish() returns only once it is done.
+    std::atomic<bool> started{false}, done{false};
+    std::thread::id by;
+    iteas::BesideWork w([&] {
+      by = std::this_thread::get_id();
+      started = true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(30));
+      done = true;
+    });
+    std::thread other([&] { w.offer(); });
+    while (!started) std::this_thread::yield();
+    w.finish();
+    EXPECT_TRUE(done.load());
+    EXPECT_NE(by, std::this_thread::get_id());
+    other.join();
+  }
+  {  // What it throws on the other thread reaches the owner, once.
+    iteas::BesideWork w([] { throw std::runtime_error("beside failed"); });
+    std::thread([&] { w.offer(); }).join();
+    EXPECT_THROW(w.finish(), std::runtime_error);
+    EXPECT_NO_THROW(w.finish());
+  }
+  {  // Thrown on the owner: it propagates, and the work counts as done.
+    int runs = 0;
+    iteas::BesideWork w([&] { ++runs; throw std::runtime_error("failed here"); });
+    EXPECT_THROW(w.finish(), std::runtime_error);
+    std::thread([&] { w.offer(); }).join();
+    EXPECT_EQ(runs, 1);
+  }
+}
+
 TEST(Parallel, CountAndFillMatchesASerialPass) {
   std::mt19937 rng(7);
   std::vector<int32_t> in(100003);
