@@ -617,7 +617,9 @@ InputAngles input_angles(const Mesh& m, const CornerTable& ct, double crease, in
 // thread from where they are (the level appends points, whose array's size
 // then changes, but never moves them: |points_kept| says the array has room
 // for the level's points). With one thread, or the other not free, both run
-// here in turn.
+// here in turn. The other thread's arrays (at most about 1 MB: refine_mesh
+// takes this path for inputs under kSmallStepFaces faces) are outside a
+// MemoryBudget of this thread, as the buffers of loops' pieces are.
 InputAngles first_level_beside_input(State& s, Mesh& m, LevelStats& ls, bool connectivity, bool more_levels,
                                      bool split_summary, size_t points_kept) {
   if (m.positions.capacity() < points_kept) throw std::logic_error("first_level_beside_input: no room for the points");
