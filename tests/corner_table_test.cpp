@@ -1214,10 +1214,6 @@ TEST(Parallel, WorkersWakingLateNeverTouchAFinishedLoop) {
   }
 }
 
-// parallel_count_fill puts every entry where a serial pass in index order
-// would: a filter of random values, for several thread counts and chunk
-// sizes (one thread: one chunk), with a single count and with a struct of
-// two counts whose fill also gets its chunk's end.
 // Work beside a loop (BesideWork) is done once: by the thread that offers
 // to do it, with the owner's finish() waiting until it is done, or by the
 // owner when no thread has begun it; what it throws reaches the owner.
@@ -1264,6 +1260,10 @@ TEST(Parallel, WorkBesideIsDoneOnceAndWaitedFor) {
   }
 }
 
+// parallel_count_fill puts every entry where a serial pass in index order
+// would: a filter of random values, for several thread counts and chunk
+// sizes (one thread: one chunk), with a single count and with a struct of
+// two counts whose fill also gets its chunk's end.
 TEST(Parallel, CountAndFillMatchesASerialPass) {
   std::mt19937 rng(7);
   std::vector<int32_t> in(100003);
