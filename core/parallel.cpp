@@ -36,6 +36,15 @@ inline void cpu_relax() {
 #endif
 }
 
+// Waits until |state| holds |value|: spinning first (the other thread is
+// usually about to store it), then yielding the CPU.
+void wait_for(const std::atomic<int>& state, int value) {
+  for (int spins = 0; state.load(std::memory_order_acquire) != value; ++spins) {
+    if (spins < 4096) cpu_relax();
+    else std::this_thread::yield();
+  }
+}
+
 // Persistent workers for parallel_for. Starting a thread costs about 33 µs
 // here, as much as a whole parallel loop of a small level; a level runs about
 // a dozen loops with short serial steps between them. Each worker has its own
@@ -80,10 +89,7 @@ class Pool {
       // for it would only add its wake-up time to the loop.
       int expected = kAssigned;
       if (s.state.compare_exchange_strong(expected, kIdle, std::memory_order_acq_rel)) continue;
-      for (int spins = 0; s.state.load(std::memory_order_acquire) != kIdle; ++spins) {
-        if (spins < 4096) cpu_relax();
-        else std::this_thread::yield();
-      }
+      wait_for(s.state, kIdle);
       if (!error) error = s.error;
     }
     if (workers > 0) measure_round_trip();
@@ -428,10 +434,7 @@ void BesideWork::finish() {
     work_();
     return;
   }
-  for (int spins = 0; state_.load(std::memory_order_acquire) != 2; ++spins) {
-    if (spins < 4096) cpu_relax();
-    else std::this_thread::yield();
-  }
+  wait_for(state_, 2);
   if (error_) std::rethrow_exception(std::exchange(error_, nullptr));
 }
 

@@ -234,6 +234,10 @@ void apply_stencils(Mesh& m, const ButterflyContext& ctx, const int32_t* corners
   for (int64_t i = 0; i < n; ++i) apply_stencil(m, ctx, corners[i], first + int32_t(i), terms);
 }
 
+// The edges of a mesh of |faces| triangles with |boundary| boundary edges
+// (cut edges included): a uniform level's new vertices, one per edge.
+int64_t uniform_edges(int64_t faces, int64_t boundary) { return (3 * faces + boundary) / 2; }
+
 void grow_vertices(Mesh& m, int64_t nv) {
   m.positions.resize(3 * size_t(nv));
   for (VertexChannel& vc : m.vertex_channels) vc.data.resize(3 * size_t(nv));
@@ -589,19 +593,18 @@ void uniform_level(State& s, Mesh& m, LevelStats& ls, bool derive_classes, bool 
   ls.vertices_added = ne;
 }
 
-// The input's angle statistics: the summary of its θ, T (the mean, as a
-// uniform job reports it) and the edges above T. The same functions and so
-// the same bits as the serial path in refine_mesh, on any thread count.
+// The input's angle statistics from its θ: the summary, T (the mean, or
+// |spec|'s statistic when given) and the edges above T. Deterministic, so
+// the same bits on any thread count, whichever thread takes them.
 struct InputAngles {
   AngleSummary before;
   double threshold = 0;
 };
-InputAngles input_angles(const Mesh& m, const CornerTable& ct, double crease, int threads) {
-  Array<float> theta;
-  edge_angles(m, ct, theta, threads);
+InputAngles input_angles(const Mesh& m, const CornerTable& ct, const Array<float>& theta, double crease, int threads,
+                         const ThresholdSpec* spec = nullptr) {
   InputAngles r;
   r.before = summarize_angles(m, ct, &theta, 0, crease, threads);
-  r.threshold = r.before.mean;
+  r.threshold = spec ? compute_threshold(*spec, m, ct, theta, crease, threads) : r.before.mean;
   r.before.above = count_angles_above(ct, theta, r.threshold, crease, threads);
   return r;
 }
@@ -633,31 +636,31 @@ InputAngles first_level_beside_input(State& s, Mesh& m, LevelStats& ls, bool con
     Mesh input;
     input.positions.assign(points, points + n_points);
     input.corner_vertex.assign(corners, corners + n_corners);
-    out = input_angles(input, table, 0, 1);  // (no creases: see refine_mesh)
+    Array<float> theta;
+    edge_angles(input, table, theta, 1);
+    out = input_angles(input, table, theta, 0, 1);  // (no creases: see refine_mesh)
   });
   // The copy and its θ.
   s.beside_bytes = int64_t(sizeof(float)) * int64_t(n_points + 2 * n_corners);
   const int threads = s.threads;
   s.threads = 1;
   s.beside = &work;
-  auto restore = [&] {
-    s.threads = threads;
-    s.beside = nullptr;
-    s.beside_bytes = 0;
-  };
-  try {
-    parallel_for_chunks(2, threads, [&](int64_t b, int64_t e) {
-      for (int64_t k = b; k < e; ++k) {
-        if (k == 0) uniform_level(s, m, ls, true, connectivity, more_levels, split_summary);
-        else work.offer();
-      }
-    });
-    work.finish();  // done already (the level waited for it): its error, if any
-  } catch (...) {
-    restore();
-    throw;
-  }
-  restore();
+  struct Restore {  // on return and on a throw alike
+    State& s;
+    int threads;
+    ~Restore() {
+      s.threads = threads;
+      s.beside = nullptr;
+      s.beside_bytes = 0;
+    }
+  } restore{s, threads};
+  // (The level always calls work.finish(), which rethrows what the work threw.)
+  parallel_for_chunks(2, threads, [&](int64_t b, int64_t e) {
+    for (int64_t k = b; k < e; ++k) {
+      if (k == 0) uniform_level(s, m, ls, true, connectivity, more_levels, split_summary);
+      else work.offer();
+    }
+  });
   return out;
 }
 
@@ -1844,7 +1847,7 @@ void select_faces(State& s, const Mesh& m, const RefineOptions& o, double T, con
 void reserve_uniform_vertices(Mesh& m, const RefineOptions& o, int64_t boundary_edges) {
   int64_t v = m.num_vertices(), f = m.num_faces(), b = boundary_edges;
   for (int level = 1; level <= o.levels && 4 * f <= o.max_triangles; ++level) {
-    v += (3 * f + b) / 2;
+    v += uniform_edges(f, b);
     f *= 4;
     b *= 2;
   }
@@ -1961,7 +1964,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
   // (reserve_uniform_vertices: one per edge), so that it never moves.
   const bool uniform_path = !adaptive && !hooks.force_adaptive_path;
   const size_t points_kept =
-      3 * size_t(int64_t(m.num_vertices()) + (3 * int64_t(m.num_faces()) + stats.topology.boundary_edges) / 2);
+      3 * size_t(m.num_vertices() + uniform_edges(m.num_faces(), stats.topology.boundary_edges));
   bool angles_beside = statistics && uniform_path && crease <= 0 && s.threads > 1 && o.levels >= 1 &&
                        m.num_faces() > 0 && m.num_faces() < kSmallStepFaces &&
                        int64_t(m.num_faces()) * 4 <= o.max_triangles && m.positions.capacity() >= points_kept;
@@ -1969,10 +1972,10 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
     current_angles(s, m);  // nothing carried into the input
     // The input's summary once: with the mean for T (uniform jobs, and the
     // default threshold) the edges above it are then counted alone.
-    stats.before = summarize_angles(m, s.ct, &s.theta, 0, crease, s.threads);
     const bool mean = o.mode == Mode::kUniform || o.threshold.kind == ThresholdSpec::Kind::kMean;
-    T_input = mean ? stats.before.mean : compute_threshold(o.threshold, m, s.ct, s.theta, crease, s.threads);
-    stats.before.above = count_angles_above(s.ct, s.theta, T_input, crease, s.threads);
+    const InputAngles in = input_angles(m, s.ct, s.theta, crease, s.threads, mean ? nullptr : &o.threshold);
+    stats.before = in.before;
+    T_input = in.threshold;
   }
   if (statistics && !quality_beside) stats.quality_before = triangle_quality(m, s.threads);
   stats.threshold = T_input;
@@ -2100,7 +2103,8 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
   }
   if (stats.stopped_by == "max_levels" && o.mode == Mode::kFixed && levels_done < o.levels) stats.stopped_by = "converged";
   if (angles_beside) {  // cancelled before the first level: the input is unchanged
-    const InputAngles in = input_angles(m, s.ct, crease, s.threads);
+    current_angles(s, m);
+    const InputAngles in = input_angles(m, s.ct, s.theta, crease, s.threads);
     stats.before = in.before;
     T_input = stats.threshold = in.threshold;
   }
