@@ -63,10 +63,13 @@ $(for p in "${PORTS[@]}"; do echo "    server 127.0.0.1:$p max_fails=1 fail_time
 }
 CONF
 
+# Stops everything; the logs stay for a failed run and go with a passed one.
 cleanup() {
+  local code=$?
   for i in 0 1 2; do [ -n "${PID[$i]:-}" ] && kill "${PID[$i]}" 2>/dev/null || true; done
   [ -f "$WORK/nginx/nginx.pid" ] && kill "$(cat "$WORK/nginx/nginx.pid")" 2>/dev/null || true
   wait 2>/dev/null || true
+  if [ "$code" = 0 ]; then rm -rf "$WORK"; else log "failed ($code); logs kept in $WORK"; fi
 }
 trap cleanup EXIT
 
