@@ -71,16 +71,17 @@ std::vector<NamedMesh> valid_meshes(int64_t max_faces, int64_t min_faces) {
 
 EdgeFacts edge_facts(const Mesh& m) {
   // Each face side as its undirected edge (smaller vertex in the high bits)
-  // and, in the lowest bit, whether it runs from the larger vertex to the
-  // smaller; sorted, an edge's uses lie side by side. (A std::map of edges
-  // took most of the time of the tests that call this on every mesh.)
+  // and, in the lowest bit, 0 when it runs from the smaller vertex to the
+  // larger (1 otherwise, a degenerate side included); sorted, an edge's
+  // uses lie side by side. (A std::map of edges took most of the time of
+  // the tests that call this on every mesh.)
   const int32_t nc = int32_t(m.corner_vertex.size());
   std::vector<uint64_t> sides(size_t(nc), 0);
   for (int32_t c = 0; c < nc; ++c) {
     const int32_t f = c / 3, k = c % 3;
     const int32_t a = m.corner_vertex[3 * f + (k + 1) % 3], b = m.corner_vertex[3 * f + (k + 2) % 3];
     const uint64_t key = uint64_t(uint32_t(std::min(a, b))) << 32 | uint32_t(std::max(a, b));
-    sides[size_t(c)] = key << 1 | uint64_t(a > b);
+    sides[size_t(c)] = key << 1 | uint64_t(!(a < b));
   }
   std::sort(sides.begin(), sides.end());
   EdgeFacts e;
