@@ -121,6 +121,28 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       const iteas::Array<float>&x = again.channels[i].data, &y = m.channels[i].data;
       if (x.size() != y.size() || std::memcmp(x.data(), y.data(), x.size() * sizeof(float)) != 0) __builtin_trap();
     }
+    // The statistics too: T, the input's and the output's angle summaries
+    // and triangle quality, and every level's counts (on two threads a small
+    // uniform job takes the input's angles beside its first level).
+    auto same_summary = [](const iteas::AngleSummary& a, const iteas::AngleSummary& b) {
+      return a.edges == b.edges && a.above == b.above && a.histogram == b.histogram &&
+             std::memcmp(&a.mean, &b.mean, sizeof(double)) == 0 && std::memcmp(&a.max, &b.max, sizeof(double)) == 0;
+    };
+    auto same_quality = [](const iteas::QualitySummary& a, const iteas::QualitySummary& b) {
+      return std::memcmp(&a.min_angle, &b.min_angle, sizeof(double)) == 0 &&
+             std::memcmp(&a.p1_angle, &b.p1_angle, sizeof(double)) == 0;
+    };
+    if (std::memcmp(&st2.threshold, &st.threshold, sizeof(double)) != 0 || st2.stopped_by != st.stopped_by ||
+        !same_summary(st2.before, st.before) || !same_summary(st2.after, st.after) ||
+        !same_quality(st2.quality_before, st.quality_before) || !same_quality(st2.quality_after, st.quality_after))
+      __builtin_trap();
+    for (size_t l = 0; l < st.levels.size(); ++l) {
+      const iteas::LevelStats &a = st2.levels[l], &b = st.levels[l];
+      if (a.faces_selected != b.faces_selected || a.red_splits != b.red_splits || a.green_splits != b.green_splits ||
+          a.greens_merged != b.greens_merged || a.vertices_added != b.vertices_added ||
+          a.triangles_after != b.triangles_after)
+        __builtin_trap();
+    }
   };
   if (attributes) {
     // Oracle: the refined mesh's smoothing groups and their sums (a split
