@@ -140,7 +140,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       const iteas::LevelStats &a = st2.levels[l], &b = st.levels[l];
       if (a.faces_selected != b.faces_selected || a.red_splits != b.red_splits || a.green_splits != b.green_splits ||
           a.greens_merged != b.greens_merged || a.vertices_added != b.vertices_added ||
-          a.triangles_after != b.triangles_after)
+          a.vertices_guarded != b.vertices_guarded || a.triangles_after != b.triangles_after)
         __builtin_trap();
     }
   };
