@@ -1957,17 +1957,17 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
   double T_input = 0;
   // On two threads a uniform job without creases, whose first level is
   // small, takes the input's angles beside that level
-  // (first_level_beside_input), when the level runs. A large first level
-  // gains from both threads itself (bun_zipper, 69,451 faces, level 1 with
-  // statistics: 8.4-8.5 ms with both on each, 8.6-9.2 ms side by side).
+  // (first_level_beside_input), or after the loop when no first level runs
+  // (cancelled, or no room for it). A large first level gains from both
+  // threads itself (bun_zipper, 69,451 faces, level 1 with statistics:
+  // 8.4-8.5 ms with both on each, 8.6-9.2 ms side by side).
   // Only where the points' array has room for the level's new points
   // (reserve_uniform_vertices: one per edge), so that it never moves.
   const bool uniform_path = !adaptive && !hooks.force_adaptive_path;
   const size_t points_kept =
       3 * size_t(m.num_vertices() + uniform_edges(m.num_faces(), stats.topology.boundary_edges));
-  bool angles_beside = statistics && uniform_path && crease <= 0 && s.threads > 1 && o.levels >= 1 &&
-                       m.num_faces() > 0 && m.num_faces() < kSmallStepFaces &&
-                       int64_t(m.num_faces()) * 4 <= o.max_triangles && m.positions.capacity() >= points_kept;
+  bool angles_beside = statistics && uniform_path && crease <= 0 && s.threads > 1 && m.num_faces() > 0 &&
+                       m.num_faces() < kSmallStepFaces && m.positions.capacity() >= points_kept;
   if (statistics && !angles_beside) {
     current_angles(s, m);  // nothing carried into the input
     // The input's summary once: with the mean for T (uniform jobs, and the
@@ -2015,20 +2015,19 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
     progress(level, "analyse", 0.0);
     LevelStats ls;
     ls.level = level;
-    const bool use_uniform_path = !adaptive && !hooks.force_adaptive_path;
-    analyse(s, m, o, !use_uniform_path || crease > 0);
+    analyse(s, m, o, !uniform_path || crease > 0);
     if (!adaptive) {
       ls.threshold = T_input;
       if (no_room()) { stats.stopped_by = "budget"; stats.budget_clamped = true; break; }
       if (cancelled()) { stats.stopped_by = "cancelled"; break; }
       progress(level, "refine", 0.0);
-      if (use_uniform_path && angles_beside) {
+      if (uniform_path && angles_beside) {
         const InputAngles in =
             first_level_beside_input(s, m, ls, level < o.levels, level < o.levels, statistics, points_kept);
         stats.before = in.before;
         T_input = stats.threshold = ls.threshold = in.threshold;
         angles_beside = false;
-      } else if (use_uniform_path) {
+      } else if (uniform_path) {
         uniform_level(s, m, ls, crease <= 0, level < o.levels, level < o.levels, statistics);
       } else {
         selected.resize(m.num_faces());
@@ -2079,7 +2078,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
     // all carried): taken now, the statistics count the θ the selection sees.
     // A uniform level makes every edge new and the next one needs no angles
     // without creases: one single-precision pass instead.
-    if (statistics && !use_uniform_path) {
+    if (statistics && !uniform_path) {
       current_angles(s, m);
       note_peak(s, m, 0);
     }
@@ -2102,7 +2101,7 @@ RefineResult refine_mesh(Mesh& m, const RefineOptions& options, const RefineHook
     if (stats.stopped_by == "budget") break;
   }
   if (stats.stopped_by == "max_levels" && o.mode == Mode::kFixed && levels_done < o.levels) stats.stopped_by = "converged";
-  if (angles_beside) {  // cancelled before the first level: the input is unchanged
+  if (angles_beside) {  // no first level ran (cancelled, or no room): the input is unchanged
     current_angles(s, m);
     const InputAngles in = input_angles(m, s.ct, s.theta, crease, s.threads);
     stats.before = in.before;
