@@ -546,6 +546,17 @@ struct AngleBlock {
     gathered[3][n] = x[s2]; gathered[4][n] = y[s2]; gathered[5][n] = z[s2];
     if (++n == kSize) flush(theta, opp);
   }
+  // add() when |keep|, without a branch on it: the entry is written either
+  // way and counted only when kept (whether a corner holds an edge follows
+  // no pattern).
+  void add_if(bool keep, int32_t c, const double* x, const double* y, const double* z, int64_t s1, int64_t s2,
+              float* theta, const int32_t* opp) {
+    corner[n] = c;
+    gathered[0][n] = x[s1]; gathered[1][n] = y[s1]; gathered[2][n] = z[s1];
+    gathered[3][n] = x[s2]; gathered[4][n] = y[s2]; gathered[5][n] = z[s2];
+    n += keep;
+    if (n == kSize) flush(theta, opp);
+  }
   void flush(float* theta, const int32_t* opp) {
     exact_degrees(g6, n, degrees);
     for (int i = 0; i < n; ++i) {
@@ -588,6 +599,10 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   // Up to this many faces (1.5 MB of normals), several threads compute
   // every face's normal first (below).
   constexpr int64_t kWholeNormals = 65536;
+  // On one thread, up to one chunk's faces (below): the same normals, in
+  // 96 KB at most, where the chunk's edge list alone took 147 KB (over
+  // glibc's 128 KiB threshold, so mapped, filled and unmapped each time).
+  constexpr int64_t kWholeNormalsOneThread = 4096;
   const int64_t kFaces = used == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * used)));
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
@@ -595,7 +610,7 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
 #if ITEAS_X86_FEATURES
   const bool wide512 = cpu_has(CpuFeature::kAvx512);
 #endif
-  if (!carried.theta && used > 1 && nf <= kWholeNormals) {
+  if (!carried.theta && nf <= (used > 1 ? kWholeNormals : kWholeNormalsOneThread)) {
     // Nothing carried, several threads, a small mesh: every face's normal
     // once, on all threads, then the angles of the edges, a range of
     // corners a thread. (Chunks of 256 faces, each computing the normals its
@@ -612,10 +627,11 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
       float* const th = theta.data();
       for (int32_t c = int32_t(b); c < int32_t(e); ++c) {
         const int32_t d = opp[c];
-        if (d <= c) continue;  // (or -1): no edge here
-        const int32_t f = c / 3, g = d / 3;
-        if (std::isnan(nx[f]) || std::isnan(nx[g])) continue;  // a zero-area face: no angle
-        block.add(c, nx, ny, nz, f, g, th, opp);
+        const int32_t f = c / 3, g = d / 3;  // (d = -1: face 0, read and not kept)
+        // An edge at its first corner (d > c; not at -1), between faces of
+        // nonzero area (a zero-area face's normal is NaN: no angle).
+        const bool keep = (d > c) & !std::isnan(nx[f]) & !std::isnan(nx[g]);
+        block.add_if(keep, c, nx, ny, nz, f, g, th, opp);
       }
       block.flush(th, opp);
     }, 3072);
