@@ -611,9 +611,9 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   const bool wide512 = cpu_has(CpuFeature::kAvx512);
 #endif
   if (!carried.theta && nf <= (used > 1 ? kWholeNormals : kWholeNormalsOneThread)) {
-    // Nothing carried, several threads, a small mesh: every face's normal
-    // once, on all threads, then the angles of the edges, a range of
-    // corners a thread. (Chunks of 256 faces, each computing the normals its
+    // Nothing carried and a small mesh (on one thread, up to one chunk's
+    // faces): every face's normal once, on all threads, then the angles of
+    // the edges, a range of corners a thread. (Chunks of 256 faces, each computing the normals its
     // edges need, computed a later chunk's face's normal once per edge; in a
     // scanner's face order most edges reach a later chunk, and bunny-npm's
     // angles took 36 µs on two threads as on one.)
