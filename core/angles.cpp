@@ -541,10 +541,7 @@ struct AngleBlock {
   // (x[s1], y[s1], z[s1]) and (x[s2], ...).
   void add(int32_t c, const double* x, const double* y, const double* z, int64_t s1, int64_t s2, float* theta,
            const int32_t* opp) {
-    corner[n] = c;
-    gathered[0][n] = x[s1]; gathered[1][n] = y[s1]; gathered[2][n] = z[s1];
-    gathered[3][n] = x[s2]; gathered[4][n] = y[s2]; gathered[5][n] = z[s2];
-    if (++n == kSize) flush(theta, opp);
+    add_if(true, c, x, y, z, s1, s2, theta, opp);
   }
   // add() when |keep|, without a branch on it: the entry is written either
   // way and counted only when kept (whether a corner holds an edge follows
@@ -597,26 +594,28 @@ void edge_angles(const Mesh& mesh, const CornerTable& ct, Array<float>& theta, i
   const int64_t nf = nc / 3;
   const int64_t used = resolve_threads(threads);
   // Up to this many faces (1.5 MB of normals), several threads compute
-  // every face's normal first (below).
+  // every face's normal first (below); one thread does up to one chunk's
+  // faces: the same normals, in 96 KB at most, where the chunk's edge list
+  // alone took 147 KB (over glibc's 128 KiB threshold, so mapped, filled and
+  // unmapped each time).
   constexpr int64_t kWholeNormals = 65536;
-  // On one thread, up to one chunk's faces (below): the same normals, in
-  // 96 KB at most, where the chunk's edge list alone took 147 KB (over
-  // glibc's 128 KiB threshold, so mapped, filled and unmapped each time).
-  constexpr int64_t kWholeNormalsOneThread = 4096;
-  const int64_t kFaces = used == 1 ? 4096 : std::min<int64_t>(4096, std::max<int64_t>(256, nf / (8 * used)));
+  constexpr int64_t kChunkFaces = 4096;  // one thread's chunk, the largest on several
+  const int64_t kFaces =
+      used == 1 ? kChunkFaces : std::min<int64_t>(kChunkFaces, std::max<int64_t>(256, nf / (8 * used)));
   const int64_t chunks = (nf + kFaces - 1) / kFaces;
   const int32_t* opp = ct.opposites().data();
   const int32_t* cv = mesh.corner_vertex.data();
 #if ITEAS_X86_FEATURES
   const bool wide512 = cpu_has(CpuFeature::kAvx512);
 #endif
-  if (!carried.theta && nf <= (used > 1 ? kWholeNormals : kWholeNormalsOneThread)) {
+  if (!carried.theta && nf <= (used > 1 ? kWholeNormals : kChunkFaces)) {
     // Nothing carried and a small mesh (on one thread, up to one chunk's
     // faces): every face's normal once, on all threads, then the angles of
-    // the edges, a range of corners a thread. (Chunks of 256 faces, each computing the normals its
-    // edges need, computed a later chunk's face's normal once per edge; in a
-    // scanner's face order most edges reach a later chunk, and bunny-npm's
-    // angles took 36 µs on two threads as on one.)
+    // the edges, a range of corners a thread. (Chunks of 256 faces, each
+    // computing the normals its edges need, computed a later chunk's face's
+    // normal once per edge; in a scanner's face order most edges reach a
+    // later chunk, and bunny-npm's angles took 36 µs on two threads as on
+    // one.)
     Array<double> normals(3 * size_t(nf));
     double *const nx = normals.data(), *const ny = nx + nf, *const nz = ny + nf;
     parallel_for(nf, threads, [&](int64_t b, int64_t e) {
